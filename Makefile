@@ -1,0 +1,64 @@
+# Causeway: the one entry point. `make run` and `make test` work on a fresh machine.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+ARGS ?=
+N ?= 2
+
+.PHONY: run test test-slow test-all bench lint up down scale logs sysdeps clean venv
+
+venv: $(STAMP)
+
+# torch first, exactly pinned, so pip takes the local CPU wheel instead of a CUDA build.
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check torch==2.13.0
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	touch $@
+
+# Debian tools the integration tests drive for real (validators, Prometheus, Chromium).
+sysdeps:
+	@missing=""; \
+	command -v docker-compose >/dev/null || missing="$$missing docker-compose"; \
+	command -v prometheus >/dev/null || missing="$$missing prometheus"; \
+	command -v promtool >/dev/null || missing="$$missing prometheus"; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing >/dev/null; \
+	  else echo "warning: missing$$missing (tests that need them will be skipped)"; fi; \
+	fi
+
+run: $(STAMP)
+	$(PY) -m services.cli run $(ARGS)
+
+test: $(STAMP) sysdeps
+	$(PY) -m pytest -q
+
+test-slow: $(STAMP) sysdeps
+	$(PY) -m pytest -q -m slow
+
+test-all: $(STAMP) sysdeps
+	$(PY) -m pytest -q -m ''
+
+bench: $(STAMP)
+	$(PY) -m benchmarks.run_all $(ARGS)
+
+lint: $(STAMP)
+	$(PY) -m compileall -q services proto envs causal benchmarks tests
+
+up:
+	docker compose up -d --build
+
+down:
+	docker compose down
+
+scale:
+	docker compose up -d --scale env-worker=$(N) --no-recreate
+
+logs:
+	docker compose logs -f --tail=100
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache test-artifacts

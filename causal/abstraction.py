@@ -1,0 +1,49 @@
+"""CDL's task-independent state abstraction (Definitions 3.1-3.3 of the dissertation).
+
+The graph is ``d_S x (d_S + 1)``: entry [j, i] = 1 when S^i_t -> S^j_{t+1}, the action is column d_S.
+Ancestors and descendants are taken over time, so they are reachability in this graph.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Abstraction:
+    """The three classes of state factors and the abstraction phi(S) = (S^C, S^AR)."""
+
+    controllable: tuple[int, ...]
+    action_relevant: tuple[int, ...]
+    action_irrelevant: tuple[int, ...]
+
+    @property
+    def kept(self) -> tuple[int, ...]:
+        return tuple(sorted(self.controllable + self.action_relevant))
+
+    def named(self, names: tuple[str, ...] | list[str]) -> dict[str, list[str]]:
+        return {cls: [names[i] for i in getattr(self, cls)]
+                for cls in ("controllable", "action_relevant", "action_irrelevant")}
+
+
+def _reach(start: set[int], step: dict[int, set[int]]) -> set[int]:
+    seen, frontier = set(start), list(start)
+    while frontier:
+        for nxt in step.get(frontier.pop(), ()):
+            if nxt not in seen:
+                seen.add(nxt)
+                frontier.append(nxt)
+    return seen
+
+
+def cdl_abstraction(adjacency: np.ndarray) -> Abstraction:
+    """Controllable = descendants of the action; action-relevant = their other ancestors; the rest irrelevant."""
+    adj = np.asarray(adjacency, dtype=bool)
+    n = adj.shape[0]
+    children = {i: {j for j in range(n) if adj[j, i] and j != i} for i in range(n)}
+    parents = {j: {i for i in range(n) if adj[j, i] and i != j} for j in range(n)}
+    controllable = _reach({j for j in range(n) if adj[j, n]}, children)
+    relevant = _reach(controllable, parents) - controllable
+    irrelevant = set(range(n)) - controllable - relevant
+    return Abstraction(tuple(sorted(controllable)), tuple(sorted(relevant)), tuple(sorted(irrelevant)))

@@ -1,0 +1,167 @@
+"""Message schemas: every value that crosses a process boundary is one of these.
+
+Each message is a frozen dataclass with a ``type`` tag and a ``schema_version``; arrays are numpy
+arrays that travel as ``(dtype, shape, bytes)``. ``proto.codec`` encodes them with msgpack and
+validates everything on decode. Field conventions:
+
+* A *factored state* is a flat float32 vector: one slot per categorical factor (the category index)
+  and ``size`` slots per continuous factor. ``EnvSpec.state_dim`` is its length.
+* A *graph* is a ``d_S x (d_S + 1)`` matrix: row = factor at t+1, column = factor at t, the action
+  in the last column.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+FACTOR_KINDS = ("continuous", "categorical")
+ACTION_KINDS = ("continuous", "categorical")
+CONTROL_COMMANDS = ("pause", "resume", "checkpoint", "stop", "set_task")
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """What an environment exposes: factor layout, action space and, where known, the true graph."""
+
+    TYPE: ClassVar[str] = "EnvSpec"
+    env_id: str
+    factor_names: tuple[str, ...]
+    factor_kinds: tuple[str, ...]
+    factor_sizes: tuple[int, ...]
+    """Categories of a categorical factor, dimensions of a continuous one."""
+    factor_objects: tuple[str, ...]
+    factor_locs: tuple[float, ...]
+    """Normalisation hint per factor (0 for categorical): learners feed (x - loc) / scale."""
+    factor_scales: tuple[float, ...]
+    action_kind: str
+    action_size: int
+    """Number of discrete actions, or the dimension of a continuous action."""
+    episode_length: int
+    global_graph: np.ndarray | None = None
+    """uint8 ``d_S x (d_S + 1)`` ground truth, or None when unknown."""
+    config_json: str = "{}"
+    """The environment's own configuration (graph, objects, seed), for reproducibility."""
+
+    @property
+    def num_factors(self) -> int:
+        return len(self.factor_names)
+
+    @property
+    def state_dim(self) -> int:
+        return sum(1 if k == "categorical" else s for k, s in zip(self.factor_kinds, self.factor_sizes))
+
+    @property
+    def action_dim(self) -> int:
+        return 1 if self.action_kind == "categorical" else self.action_size
+
+
+@dataclass(frozen=True)
+class TransitionBatch:
+    """A batch of consecutive steps from one env-worker (never single steps)."""
+
+    TYPE: ClassVar[str] = "TransitionBatch"
+    worker_id: str
+    seq: int
+    policy_version: int
+    state: np.ndarray
+    """float32 [T, state_dim]"""
+    action: np.ndarray
+    """float32 [T, action_dim] (a categorical action is its index in one column)"""
+    reward: np.ndarray
+    """float32 [T]"""
+    next_state: np.ndarray
+    """float32 [T, state_dim]"""
+    terminated: np.ndarray
+    """bool [T]"""
+    truncated: np.ndarray
+    """bool [T]"""
+    episode_id: np.ndarray
+    """int64 [T]; unique per worker"""
+    step: np.ndarray
+    """int32 [T]; index of the step within its episode"""
+    local_graph: np.ndarray | None = None
+    """uint8 [T, d_S, d_S + 1] ground-truth local graphs, when the simulator can tell"""
+
+    def __len__(self) -> int:
+        return int(self.state.shape[0])
+
+
+@dataclass(frozen=True)
+class ScoredBatch:
+    """Transitions plus the intrinsic reward computed for them by the intrinsic-reward service."""
+
+    TYPE: ClassVar[str] = "ScoredBatch"
+    transitions: TransitionBatch
+    intrinsic_reward: np.ndarray
+    """float32 [T]"""
+    reward_kind: str
+    weights_version: int
+
+
+@dataclass(frozen=True)
+class Weights:
+    """A versioned model snapshot: named tensors plus the config needed to rebuild the module."""
+
+    TYPE: ClassVar[str] = "Weights"
+    model: str
+    version: int
+    config_json: str
+    tensors: dict[str, np.ndarray] = field(default_factory=dict)
+    updates: int = 0
+    env_steps: int = 0
+
+
+@dataclass(frozen=True)
+class GraphReport:
+    """A causal graph estimate with its CMI matrix, abstraction and scores against the truth."""
+
+    TYPE: ClassVar[str] = "GraphReport"
+    kind: str
+    weights_version: int
+    env_steps: int
+    updates: int
+    factor_names: tuple[str, ...]
+    cmi: np.ndarray
+    """float32 [d_S, d_S + 1], nats"""
+    adjacency: np.ndarray
+    """uint8 [d_S, d_S + 1]"""
+    threshold: float
+    controllable: tuple[int, ...]
+    action_relevant: tuple[int, ...]
+    action_irrelevant: tuple[int, ...]
+    metrics: dict[str, float] = field(default_factory=dict)
+    """accuracy, precision, recall, f1, roc_auc, best_threshold, best_threshold_f1 (when truth known)"""
+    true_graph: np.ndarray | None = None
+    num_heldout: int = 0
+    timestamp: float = 0.0
+
+
+@dataclass(frozen=True)
+class Control:
+    """An operator command for one service (or ``*``)."""
+
+    TYPE: ClassVar[str] = "Control"
+    command: str
+    argument: str = ""
+    issued_at: float = 0.0
+
+
+@dataclass(frozen=True)
+class ServiceStats:
+    """A periodic progress beat from one service instance, for the supervisor's live display."""
+
+    TYPE: ClassVar[str] = "ServiceStats"
+    service: str
+    instance: str
+    values: dict[str, float] = field(default_factory=dict)
+    timestamp: float = 0.0
+
+
+MESSAGE_TYPES: dict[str, type] = {
+    cls.TYPE: cls
+    for cls in (EnvSpec, TransitionBatch, ScoredBatch, Weights, GraphReport, Control, ServiceStats)
+}

@@ -1,0 +1,68 @@
+"""Zenoh key expressions: the only place topic names are spelled out.
+
+``<run>`` is the run id. Who publishes and who subscribes is in the README's data-flow table.
+"""
+from __future__ import annotations
+
+import re
+
+ROOT = "causeway"
+_SEGMENT = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def _check(*segments: str) -> None:
+    for s in segments:
+        if s != "*" and s != "**" and not _SEGMENT.match(s):
+            raise ValueError(f"invalid key segment {s!r}: use letters, digits, '_', '.', '-'")
+
+
+def env_spec(run: str) -> str:
+    _check(run)
+    return f"{ROOT}/{run}/env/spec"
+
+
+def transitions(run: str, worker: str = "*") -> str:
+    _check(run, worker)
+    return f"{ROOT}/{run}/transitions/{worker}"
+
+
+def scored(run: str, worker: str = "*") -> str:
+    _check(run, worker)
+    return f"{ROOT}/{run}/scored/{worker}"
+
+
+def weights(run: str, model: str = "*") -> str:
+    _check(run, model)
+    return f"{ROOT}/{run}/weights/{model}"
+
+
+def graph(run: str, kind: str = "*") -> str:
+    _check(run, kind)
+    return f"{ROOT}/{run}/graph/{kind}"
+
+
+def control(run: str, service: str = "*") -> str:
+    _check(run, service)
+    return f"{ROOT}/{run}/control/{service}"
+
+
+def stats(run: str, service: str = "*", instance: str = "*") -> str:
+    _check(run, service, instance)
+    return f"{ROOT}/{run}/stats/{service}/{instance}"
+
+
+def alive(run: str, service: str = "*", instance: str = "*") -> str:
+    _check(run, service, instance)
+    return f"{ROOT}/{run}/alive/{service}/{instance}"
+
+
+def parse_alive(key: str) -> tuple[str, str, str]:
+    """``causeway/<run>/alive/<service>/<id>`` -> (run, service, id)."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != ROOT or parts[2] != "alive":
+        raise ValueError(f"not a liveliness key: {key!r}")
+    return parts[1], parts[3], parts[4]
+
+
+def last_segment(key: str) -> str:
+    return key.rsplit("/", 1)[-1]
