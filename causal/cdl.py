@@ -55,14 +55,42 @@ class CDLConfig:
         return json.dumps(asdict(self), sort_keys=True)
 
 
-def top2(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Largest and second-largest value over inputs (dim 1), and the arg-max, as [J, 2, B, F] / [J, 1, B, F].
+def max_and_runner_up(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Max over inputs (dim 1), the max without the arg-max input, and where the max sits.
 
-    Faster than ``topk`` on this layout; ties give the same value twice, which is what a max wants.
+    ``where(is_max[:, i], runner_up, first)`` is the aggregate with input i masked to -inf, for
+    every i at once. Features are linear outputs, so exact ties have probability zero.
     """
-    first, arg = feats.max(dim=1, keepdim=True)
-    second = feats.scatter(1, arg, float("-inf")).amax(dim=1, keepdim=True)
-    return torch.cat([first, second], dim=1), arg
+    first = feats.amax(dim=1, keepdim=True)
+    is_max = feats == first
+    runner_up = feats.masked_fill(is_max, float("-inf")).amax(dim=1, keepdim=True)
+    return first, runner_up, is_max
+
+
+class _MaxAndDropOne(torch.autograd.Function):
+    """(max over inputs, max over inputs without input ``drop``) with a lean backward.
+
+    Autograd's ``amax`` backward normalises by tie counts in several passes over [J, I, B, F];
+    ties have probability zero here, so the gradient is simply routed to the arg-max (and, for the
+    dropped term, to the runner-up where the arg-max was dropped). Same values, ~3x cheaper.
+    """
+
+    @staticmethod
+    def forward(ctx, feats: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        first, runner_up, is_max = max_and_runner_up(feats)
+        dropped_is_max = is_max.gather(1, drop.expand(-1, -1, -1, feats.shape[-1]))
+        dropped = torch.where(dropped_is_max, runner_up, first)
+        ctx.save_for_backward(feats, first, runner_up, dropped_is_max)
+        return first, dropped
+
+    @staticmethod
+    def backward(ctx, grad_first: torch.Tensor, grad_dropped: torch.Tensor) -> tuple[torch.Tensor, None]:
+        feats, first, runner_up, dropped_is_max = ctx.saved_tensors
+        to_max = grad_first + torch.where(dropped_is_max, 0.0, grad_dropped)
+        to_runner_up = torch.where(dropped_is_max, grad_dropped, 0.0)
+        grad = torch.where(feats == first, to_max, 0.0)
+        grad += torch.where(feats == runner_up, to_runner_up, 0.0)
+        return grad, None
 
 
 def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
@@ -70,25 +98,68 @@ def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
     return nn.Parameter(torch.empty(*shape).uniform_(-bound, bound))
 
 
+class FeatureGroup(nn.Module):
+    """Feature networks phi^{j,k}: width -> hidden -> feature, for K inputs of one kind and every output j.
+
+    A categorical input is one-hot, so its network takes only ``width`` distinct values: ``table()``
+    evaluates them once per call and samples gather their rows. That equals running the network on
+    each one-hot vector, at a fraction of the cost.
+    """
+
+    def __init__(self, outputs: int, inputs: int, width: int, hidden: int, feature: int) -> None:
+        super().__init__()
+        self.shape = (outputs, inputs, width, hidden, feature)
+        self.w1 = _stacked(outputs, inputs, width, hidden, fan_in=width)
+        self.b1 = _stacked(outputs, inputs, 1, hidden, fan_in=width)
+        self.w2 = _stacked(outputs * inputs, hidden, feature, fan_in=hidden)
+        self.b2 = _stacked(outputs * inputs, 1, feature, fan_in=hidden)
+
+    def _second_layer(self, h: torch.Tensor) -> torch.Tensor:
+        j, k, n, hidden = h.shape
+        return torch.baddbmm(self.b2, h.reshape(j * k, n, hidden), self.w2).view(j, k, n, -1)
+
+    def dense(self, x: torch.Tensor) -> torch.Tensor:
+        """Inputs [B, K, width] -> features [J, K, B, F]."""
+        if self.shape[2] == 1:  # scalar inputs: the first layer is an outer product, no matmul needed
+            h = torch.addcmul(self.b1, x[None, :, :, 0].transpose(1, 2)[..., None], self.w1)
+        else:
+            h = torch.einsum("bkw,jkwh->jkbh", x, self.w1) + self.b1
+        return self._second_layer(torch.relu(h))
+
+    def table(self) -> torch.Tensor:
+        """Features of every one-hot value: [J, K, width, F]."""
+        return self._second_layer(torch.relu(self.w1 + self.b1))
+
+    def onehot(self, index: torch.Tensor) -> torch.Tensor:
+        """Category indices [B, K] -> features [J, K, B, F]."""
+        j, k, width, _, _ = self.shape
+        flat = (torch.arange(k, device=index.device)[:, None] * width + index.T).reshape(-1)
+        return self.table().reshape(j, k * width, -1).index_select(1, flat).view(j, k, index.shape[0], -1)
+
+
 class CDLModel(nn.Module):
-    """The d_S masked predictive models of Fig. 3.3 as one batched module."""
+    """The d_S masked predictive models of Fig. 3.3 as one batched module.
+
+    Inputs are kept in *group order* inside the module (categorical factors, continuous factors, the
+    action); ``input_order`` maps group positions back to the graph's column order.
+    """
 
     def __init__(self, layout: FactorLayout, cfg: CDLConfig) -> None:
         super().__init__()
         self.layout, self.cfg = layout, cfg
         self.codec = FactorCodec(layout)
-        n, w, a = layout.num_factors, layout.input_width, layout.action_width
-        hf, f, h, o = cfg.feature_hidden, cfg.feature_dim, cfg.predictor_hidden, layout.head_width
+        n, hf, f, h, o = layout.num_factors, cfg.feature_hidden, cfg.feature_dim, cfg.predictor_hidden, layout.head_width
         self.num_outputs, self.num_inputs = n, n + 1
-        self.state_w1 = _stacked(n, n, w, hf, fan_in=w)
-        self.action_w1 = _stacked(n, a, hf, fan_in=a)
-        self.feature_b1 = _stacked(n, n + 1, 1, hf, fan_in=max(w, 1))
-        self.feature_w2 = _stacked(n * (n + 1), hf, f, fan_in=hf)
-        self.feature_b2 = _stacked(n * (n + 1), 1, f, fan_in=hf)
+        codec = self.codec
+        self.cat_features = FeatureGroup(n, len(codec.cat_factors), codec.max_cat, hf, f) if codec.cat_factors else None
+        self.cont_features = FeatureGroup(n, len(codec.cont_factors), codec.max_cont, hf, f) if codec.cont_factors else None
+        self.action_features = FeatureGroup(n, 1, layout.action_width, hf, f)
         self.head_w1, self.head_b1 = _stacked(n, f, h, fan_in=f), _stacked(n, 1, h, fan_in=f)
         self.head_w2, self.head_b2 = _stacked(n, h, h, fan_in=h), _stacked(n, 1, h, fan_in=h)
         self.head_w3, self.head_b3 = _stacked(n, h, o, fan_in=h), _stacked(n, 1, o, fan_in=h)
         self.register_buffer("cat_class_mask", self._class_mask())
+        order = torch.tensor(codec.cat_factors + codec.cont_factors + [n], dtype=torch.long)
+        self.register_buffer("input_order", order)
 
     def _class_mask(self) -> torch.Tensor:
         cats = self.codec.cat_factors
@@ -98,14 +169,28 @@ class CDLModel(nn.Module):
         return mask
 
     def features(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """[J, I, B, F] features phi^i for every output j, input i and sample."""
-        xs, xa = self.codec.encode_state(state), self.codec.encode_action(action)
-        hs = torch.einsum("biw,jiwh->jibh", xs, self.state_w1)
-        ha = torch.einsum("ba,jah->jbh", xa, self.action_w1).unsqueeze(1)
-        h1 = torch.relu(torch.cat([hs, ha], dim=1) + self.feature_b1)
-        j, i, b, hf = h1.shape
-        h2 = torch.baddbmm(self.feature_b2, h1.reshape(j * i, b, hf), self.feature_w2)
-        return h2.view(j, i, b, -1)
+        """[J, I, B, F] features phi^i for every output j, input i (group order) and sample."""
+        groups = []
+        if self.cat_features is not None:
+            groups.append(self.cat_features.onehot(self.codec.categories(state).clamp_max(self.codec.max_cat - 1)))
+        if self.cont_features is not None:
+            groups.append(self.cont_features.dense(self.codec.continuous_values(state)))
+        if self.layout.action_kind == "categorical":
+            index = action[:, :1].round().long().clamp(0, self.layout.action_size - 1)
+            groups.append(self.action_features.onehot(index))
+        else:
+            groups.append(self.action_features.dense(action[:, None, :].to(torch.float32)))
+        return torch.cat(groups, dim=1)
+
+    def to_group_order(self, mask: torch.Tensor) -> torch.Tensor:
+        """A [J, I] mask in graph column order -> the module's input order."""
+        return mask[:, self.input_order]
+
+    def to_graph_order(self, matrix: torch.Tensor) -> torch.Tensor:
+        """A [J, I] matrix in the module's input order -> graph column order."""
+        out = torch.empty_like(matrix)
+        out[:, self.input_order] = matrix
+        return out
 
     def predict(self, aggregated: torch.Tensor) -> torch.Tensor:
         """Heads on aggregated features [J, K, B, F] -> raw outputs [J, K, B, head_width]."""
@@ -141,19 +226,20 @@ class CDLModel(nn.Module):
                    mask: torch.Tensor) -> torch.Tensor:
         """NLL [J, B] with inputs masked by ``mask`` [J, I] (True = input used)."""
         feats = self.features(state, action)
-        agg = feats.masked_fill(~mask[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True)
+        keep = self.to_group_order(mask)
+        agg = feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True)
         return self.nll(self.predict(agg), state, next_state)[:, 0]
 
     def training_nll(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
                      parents: torch.Tensor | None, generator: torch.Generator | None = None) -> torch.Tensor:
         """The terms of eq. 3.3 as NLL [J, K, B]: K = full, one uniformly dropped input, causal parents."""
         feats = self.features(state, action)
-        top, arg = top2(feats)
-        drop = torch.randint(0, self.num_inputs, (self.num_outputs, state.shape[0], 1), generator=generator)
-        terms = [top[:, 0], torch.where(arg[:, 0] == drop, top[:, 1], top[:, 0])]
+        drop = torch.randint(0, self.num_inputs, (self.num_outputs, 1, state.shape[0], 1), generator=generator)
+        terms = list(_MaxAndDropOne.apply(feats, drop))
         if parents is not None:
-            terms.append(feats.masked_fill(~parents[:, :, None, None], float("-inf")).amax(dim=1))
-        return self.nll(self.predict(torch.stack(terms, dim=1)), state, next_state)
+            keep = self.to_group_order(parents)
+            terms.append(feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True))
+        return self.nll(self.predict(torch.cat(terms, dim=1)), state, next_state)
 
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
@@ -162,13 +248,11 @@ class CDLModel(nn.Module):
         total = torch.zeros(self.num_outputs, self.num_inputs)
         for start in range(0, state.shape[0], chunk):
             s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
-            top, arg = top2(self.features(s, a))
-            inputs = torch.arange(self.num_inputs).view(1, -1, 1, 1)
-            dropped = torch.where(arg[:, :1] == inputs, top[:, 1:2], top[:, :1])
-            full_nll = self.nll(self.predict(top[:, :1]), s, n)
-            dropped_nll = self.nll(self.predict(dropped), s, n)
+            first, runner_up, is_max = max_and_runner_up(self.features(s, a))
+            full_nll = self.nll(self.predict(first), s, n)
+            dropped_nll = self.nll(self.predict(torch.where(is_max, runner_up, first)), s, n)
             total += (dropped_nll - full_nll).sum(dim=-1)
-        return total / max(state.shape[0], 1)
+        return self.to_graph_order(total / max(state.shape[0], 1))
 
 
 def model_config_json(layout: FactorLayout, cfg: CDLConfig) -> str:

@@ -12,7 +12,7 @@ _SEGMENT = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 def _check(*segments: str) -> None:
     for s in segments:
-        if s != "*" and s != "**" and not _SEGMENT.match(s):
+        if s != "*" and s != "**" and not _SEGMENT.fullmatch(s):
             raise ValueError(f"invalid key segment {s!r}: use letters, digits, '_', '.', '-'")
 
 

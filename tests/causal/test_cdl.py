@@ -100,3 +100,22 @@ def test_checkpoint_resume_is_exact() -> None:
     b_.load_state_dict(a.state_dict())
     for b in batches[2:]:
         assert a.update(*b) == b_.update(*b)
+
+
+def test_max_and_drop_one_gradient_matches_autograd() -> None:
+    from causal.cdl import _MaxAndDropOne
+    torch.manual_seed(0)
+    feats = torch.randn(3, 5, 4, 2, dtype=torch.float64, requires_grad=True)
+    drop = torch.randint(0, 5, (3, 1, 4, 1))
+    weights = torch.randn(2, 3, 1, 4, 2, dtype=torch.float64)
+    first, dropped = _MaxAndDropOne.apply(feats, drop)
+    (first * weights[0] + dropped * weights[1]).sum().backward()
+    ours = feats.grad.clone()
+    feats.grad = None
+    mask = torch.zeros(3, 5, 4, 2, dtype=torch.bool).scatter_(1, drop.expand(-1, -1, -1, 2), True)
+    ref_first = feats.amax(1, keepdim=True)
+    ref_dropped = feats.masked_fill(mask, float("-inf")).amax(1, keepdim=True)
+    torch.testing.assert_close(first, ref_first)
+    torch.testing.assert_close(dropped, ref_dropped)
+    (ref_first * weights[0] + ref_dropped * weights[1]).sum().backward()
+    torch.testing.assert_close(ours, feats.grad)

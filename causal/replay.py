@@ -1,0 +1,61 @@
+"""Bounded transition storage and the training / held-out split shared by learner and evaluator.
+
+The split is by episode (the reference holds out 10% of episodes for CMI), decided by a hash of
+(worker id, episode id), so every service that sees a transition agrees on its side without talking.
+"""
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+import torch
+
+
+def heldout_mask(worker_id: str, episode_ids: np.ndarray, fraction: float) -> np.ndarray:
+    """True where the step belongs to a held-out episode."""
+    salt = zlib.crc32(worker_id.encode()) & 0xFFFF
+    mixed = (episode_ids.astype(np.uint64) * np.uint64(2654435761) + np.uint64(salt)) % np.uint64(10_000)
+    return mixed < np.uint64(round(fraction * 10_000))
+
+
+class ReplayBuffer:
+    """A ring buffer of (state, action, next_state) rows; the oldest rows are overwritten."""
+
+    def __init__(self, capacity: int, state_dim: int, action_dim: int, seed: int = 0) -> None:
+        self.capacity = capacity
+        self.state = np.zeros((capacity, state_dim), np.float32)
+        self.action = np.zeros((capacity, action_dim), np.float32)
+        self.next_state = np.zeros((capacity, state_dim), np.float32)
+        self.size, self.cursor, self.added = 0, 0, 0
+        self.rng = np.random.default_rng(seed)
+
+    def add(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray) -> None:
+        n = len(state)
+        if n > self.capacity:
+            state, action, next_state = state[-self.capacity:], action[-self.capacity:], next_state[-self.capacity:]
+            n = self.capacity
+        index = (self.cursor + np.arange(n)) % self.capacity
+        self.state[index], self.action[index], self.next_state[index] = state, action, next_state
+        self.cursor = int((self.cursor + n) % self.capacity)
+        self.size = min(self.capacity, self.size + n)
+        self.added += n
+
+    def sample(self, batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        index = self.rng.integers(0, self.size, batch)
+        return tuple(torch.from_numpy(a[index]) for a in (self.state, self.action, self.next_state))
+
+    def all(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return tuple(torch.from_numpy(a[: self.size]) for a in (self.state, self.action, self.next_state))
+
+    def state_dict(self) -> dict:
+        return {"state": torch.from_numpy(self.state[: self.size].copy()),
+                "action": torch.from_numpy(self.action[: self.size].copy()),
+                "next_state": torch.from_numpy(self.next_state[: self.size].copy()),
+                "cursor": self.cursor, "added": self.added}
+
+    def load_state_dict(self, saved: dict) -> None:
+        n = min(int(saved["state"].shape[0]), self.capacity)
+        self.state[:n] = saved["state"][:n].numpy()
+        self.action[:n] = saved["action"][:n].numpy()
+        self.next_state[:n] = saved["next_state"][:n].numpy()
+        self.size, self.cursor, self.added = n, int(saved["cursor"]) % self.capacity, int(saved["added"])
