@@ -1,0 +1,28 @@
+"""The wire contract: message schemas (``messages``), topic names (``topics``), the ``codec``."""
+from proto.codec import REJECT_REASONS, Message, ProtocolError, decode, encode
+from proto.messages import (
+    SCHEMA_VERSION,
+    Control,
+    EnvSpec,
+    GraphReport,
+    ScoredBatch,
+    ServiceStats,
+    TransitionBatch,
+    Weights,
+)
+
+__all__ = [
+    "REJECT_REASONS",
+    "SCHEMA_VERSION",
+    "Control",
+    "EnvSpec",
+    "GraphReport",
+    "Message",
+    "ProtocolError",
+    "ScoredBatch",
+    "ServiceStats",
+    "TransitionBatch",
+    "Weights",
+    "decode",
+    "encode",
+]
