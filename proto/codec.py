@@ -407,3 +407,17 @@ _VALIDATORS: Final[dict[type, Callable[[Any], None]]] = {
     Control: _check_control,
     ServiceStats: _check_stats,
 }
+
+
+def check_fits(spec: EnvSpec, batch: TransitionBatch) -> None:
+    """Raise ProtocolError('inconsistent') unless ``batch`` has the layout ``spec`` announces.
+
+    Decoding checks a message on its own; this checks it against the run's EnvSpec, which every
+    consumer of transitions does before storing anything.
+    """
+    if batch.state.shape[1] != spec.state_dim or batch.action.shape[1] != spec.action_dim:
+        raise ProtocolError("inconsistent", f"TransitionBatch from {batch.worker_id}: state/action widths "
+                            f"{batch.state.shape[1]}/{batch.action.shape[1]}, EnvSpec says {spec.state_dim}/{spec.action_dim}")
+    graphs = batch.local_graph
+    if graphs is not None and graphs.shape[1:] != (spec.num_factors, spec.num_factors + 1):
+        raise ProtocolError("inconsistent", f"TransitionBatch from {batch.worker_id}: local graphs {graphs.shape[1:]}")

@@ -1,0 +1,1 @@
+"""dynamics-learner: trains the CDL causal dynamics model on streamed transitions and publishes weights."""

@@ -1,0 +1,3 @@
+from services.dynamics_learner.service import main
+
+main()

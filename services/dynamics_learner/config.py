@@ -1,0 +1,34 @@
+"""dynamics-learner configuration."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from causal.cdl import CDLConfig
+from services.runtime.config import ServiceConfig, doc
+
+_CDL = CDLConfig()
+
+
+@dataclass(frozen=True)
+class DynamicsLearnerConfig(ServiceConfig):
+    """dynamics-learner: CDL on a bounded replay of the training episodes."""
+
+    seed: int = doc(0, "seed of the model initialisation and of replay sampling")
+    replay_capacity: int = doc(200_000, "transitions kept in the replay (oldest dropped)")
+    warmup_steps: int = doc(2_000, "transitions to collect before the first update")
+    heldout_fraction: float = doc(0.1, "fraction of episodes held out for CMI (not trained on)")
+    feature_hidden: int = doc(_CDL.feature_hidden, "hidden width of each feature network")
+    feature_dim: int = doc(_CDL.feature_dim, "feature size phi")
+    predictor_hidden: int = doc(_CDL.predictor_hidden, "hidden width of each predictive head")
+    lr: float = doc(_CDL.lr, "Adam learning rate")
+    batch_size: int = doc(_CDL.batch_size, "transitions per update")
+    causal_every: int = doc(_CDL.causal_every, "causal likelihood term every N updates (eq. 3.3)")
+    cmi_threshold: float = doc(_CDL.cmi_threshold, "CMI edge threshold epsilon_G, nats")
+    publish_every_s: float = doc(3.0, "seconds between weight publications")
+    checkpoint_every_s: float = doc(30.0, "seconds between checkpoints")
+    max_updates: int = doc(0, "stop after this many updates (0: never)")
+
+    def cdl(self) -> CDLConfig:
+        return CDLConfig(feature_hidden=self.feature_hidden, feature_dim=self.feature_dim,
+                         predictor_hidden=self.predictor_hidden, lr=self.lr, batch_size=self.batch_size,
+                         causal_every=self.causal_every, cmi_threshold=self.cmi_threshold)

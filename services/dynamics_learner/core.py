@@ -1,0 +1,85 @@
+"""dynamics-learner core: replay + CDL trainer + weight export + checkpoints. No bus."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from causal.cdl import export_tensors, model_config_json
+from causal.cdl_trainer import CDLTrainer
+from causal.factored import FactorLayout
+from causal.replay import ReplayBuffer, heldout_mask
+from proto.codec import check_fits
+from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
+from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.runtime.checkpoint import load_checkpoint, save_checkpoint
+
+MODEL = "cdl"
+
+
+class DynamicsLearnerCore:
+    """Consumes training transitions, trains CDL (eq. 3.3), takes parents from graph reports."""
+
+    def __init__(self, cfg: DynamicsLearnerConfig, spec: EnvSpec) -> None:
+        self.cfg, self.spec = cfg, spec
+        self.layout = FactorLayout.from_spec(spec)
+        self.trainer = CDLTrainer(self.layout, cfg.cdl(), seed=cfg.seed)
+        self.replay = ReplayBuffer(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
+        self.version = 0
+        self.env_steps = 0
+        self.graph_version = -1
+        self.last_stats: dict[str, float] = {}
+        self.resumed_at_update = 0
+
+    def ingest(self, batch: TransitionBatch) -> int:
+        """Keep the training episodes of ``batch``; returns how many steps were kept.
+
+        Raises ProtocolError('inconsistent') for a batch that does not fit the EnvSpec (nothing kept)."""
+        check_fits(self.spec, batch)
+        self.env_steps += len(batch)
+        keep = ~heldout_mask(batch.worker_id, batch.episode_id, self.cfg.heldout_fraction)
+        self.replay.add(batch.state[keep], batch.action[keep], batch.next_state[keep])
+        return int(keep.sum())
+
+    @property
+    def ready(self) -> bool:
+        return self.replay.size >= max(self.cfg.warmup_steps, self.cfg.batch_size)
+
+    def train_step(self) -> dict[str, float]:
+        stats = self.trainer.update(*self.replay.sample(self.cfg.batch_size))
+        self.last_stats.update(stats)
+        return stats
+
+    def apply_graph(self, report: GraphReport) -> bool:
+        """Use the evaluator's graph as PA(S^j) for the causal term; stale reports are ignored."""
+        if report.weights_version < self.graph_version or report.adjacency.shape != tuple(self.trainer.parents.shape):
+            return False
+        self.graph_version = report.weights_version
+        self.trainer.set_parents(report.adjacency)
+        return True
+
+    def weights(self) -> Weights:
+        self.version += 1
+        return Weights(model=MODEL, version=self.version, config_json=model_config_json(self.layout, self.trainer.cfg),
+                       tensors=export_tensors(self.trainer.model), updates=self.trainer.updates,
+                       env_steps=self.env_steps)
+
+    def checkpoint(self, path: Path) -> None:
+        save_checkpoint({"trainer": self.trainer.state_dict(), "replay": self.replay.state_dict(),
+                         "version": self.version, "env_steps": self.env_steps,
+                         "graph_version": self.graph_version}, path)
+
+    def restore(self, path: Path) -> bool:
+        saved = load_checkpoint(path)
+        if saved is None:
+            return False
+        self.trainer.load_state_dict(saved["trainer"])
+        self.replay.load_state_dict(saved["replay"])
+        self.version, self.env_steps = int(saved["version"]), int(saved["env_steps"])
+        self.graph_version = int(saved["graph_version"])
+        self.resumed_at_update = self.trainer.updates
+        return True
+
+    def progress(self) -> dict[str, float]:
+        return {"updates": self.trainer.updates, "env_steps": self.env_steps, "replay_size": self.replay.size,
+                "weights_version": self.version, "resumed_at_update": self.resumed_at_update, **self.last_stats}

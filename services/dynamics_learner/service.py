@@ -1,0 +1,111 @@
+"""dynamics-learner service shell: the only dynamics-learner file that touches the bus."""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+
+from proto import topics
+from proto.codec import encode
+from proto.messages import GraphReport, TransitionBatch
+from services.bus.base import Transport
+from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.dynamics_learner.core import MODEL, DynamicsLearnerCore
+from services.runtime.config import parse_config, write_config
+from services.runtime.shell import ServiceShell, setup_logging
+
+SERVICE = "dynamics-learner"
+log = logging.getLogger(SERVICE)
+
+
+class _Metrics:
+    def __init__(self, shell: ServiceShell) -> None:
+        m = shell.metrics
+        self.updates = m.counter("causeway_dynamics_updates", "CDL gradient updates")
+        self.nll = m.gauge("causeway_dynamics_nll_nats", "Mean NLL per factor of the last update, by eq. 3.3 term", ("term",))
+        self.replay = m.gauge("causeway_replay_transitions", "Transitions in the replay buffer")
+        self.env_steps = m.gauge("causeway_learner_env_steps", "Env steps seen by the learner (training + held-out)")
+        self.version = m.gauge("causeway_weights_version", "Version of the last published weights")
+        self.weights_bytes = m.counter("causeway_weights_bytes_published", "Bytes of weights published")
+        self.update_seconds = m.histogram("causeway_update_seconds", "Duration of one CDL update",
+                                          (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0))
+        self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
+
+
+def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
+    shell = ServiceShell(SERVICE, cfg, transport)
+    metrics = _Metrics(shell)
+    transitions = shell.inbox("transitions", TransitionBatch, maxsize=256)
+    graphs = shell.inbox("graph", GraphReport, maxsize=8)
+    shell.subscribe(topics.transitions(cfg.run_id), transitions)
+    shell.subscribe(topics.graph(cfg.run_id, MODEL), graphs)
+    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, MODEL))
+    spec = shell.wait_for_spec()
+    if spec is None:
+        shell.close()
+        return
+    core = DynamicsLearnerCore(cfg, spec)
+    ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
+    write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
+    if core.restore(ckpt):
+        log.info("resumed from %s at update %d", ckpt, core.trainer.updates)
+    last_publish = last_ckpt = time.monotonic()
+    try:
+        while not shell.stopping.is_set():
+            shell.poll_control()
+            _drain(core, transitions, graphs, shell)
+            if shell.paused or not core.ready:
+                time.sleep(0.02)
+            else:
+                t0 = time.perf_counter()
+                stats = core.train_step()
+                metrics.update_seconds.observe(time.perf_counter() - t0)
+                metrics.updates.inc()
+                for term, value in stats.items():
+                    metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
+            now = time.monotonic()
+            if core.ready and now - last_publish >= cfg.publish_every_s:
+                _publish(core, latest, metrics)
+                last_publish = now
+            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
+                core.checkpoint(ckpt)
+                metrics.checkpoints.inc()
+                shell.checkpoint_requested, last_ckpt = False, now
+            metrics.replay.set(core.replay.size)
+            metrics.env_steps.set(core.env_steps)
+            shell.beat(core.progress())
+            if cfg.max_updates and core.trainer.updates >= cfg.max_updates:
+                break
+    finally:
+        if core.trainer.updates:
+            _publish(core, latest, metrics)
+        core.checkpoint(ckpt)
+        shell.beat(core.progress(), force=True)
+        latest.close()
+        shell.close()
+
+
+def _drain(core: DynamicsLearnerCore, transitions, graphs, shell: ServiceShell) -> None:
+    for _, batch in transitions.drain():
+        shell.guarded(core.ingest, batch)
+    for _, report in graphs.drain():
+        core.apply_graph(report)
+
+
+def _publish(core: DynamicsLearnerCore, latest, metrics: _Metrics) -> None:
+    payload = encode(core.weights())
+    latest.set(payload)
+    metrics.version.set(core.version)
+    metrics.weights_bytes.inc(len(payload))
+
+
+def main(argv: list[str] | None = None) -> None:
+    setup_logging(SERVICE)
+    import torch
+    torch.set_num_threads(1)
+    run(parse_config(DynamicsLearnerConfig, argv))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

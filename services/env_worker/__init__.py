@@ -1,0 +1,1 @@
+"""env-worker: steps one environment with the current collection policy and publishes transition batches."""

@@ -1,0 +1,3 @@
+from services.env_worker.service import main
+
+main()

@@ -1,0 +1,86 @@
+"""env-worker core: an environment and a collection policy that produce TransitionBatches. No bus."""
+from __future__ import annotations
+
+import dataclasses
+import socket
+import zlib
+
+import numpy as np
+
+from envs import make_env
+from proto.messages import EnvSpec, TransitionBatch
+from services.env_worker.config import EnvWorkerConfig
+
+
+def env_kwargs(cfg: EnvWorkerConfig) -> dict:
+    if cfg.env == "chemical":
+        return {"graph": cfg.graph, "num_objects": cfg.num_objects, "cpt_seed": cfg.cpt_seed}
+    return {}
+
+
+class RandomPolicy:
+    """Uniformly random actions (the chapter's collection policy for Chemical)."""
+
+    version = 0
+
+    def __init__(self, action_space, seed: int) -> None:
+        self.space = action_space
+        self.space.seed(seed)
+
+    def act(self, observation: np.ndarray) -> np.ndarray:
+        return np.atleast_1d(np.asarray(self.space.sample(), dtype=np.float32))
+
+
+def resolve_worker_index(cfg: EnvWorkerConfig) -> EnvWorkerConfig:
+    """Replicas started from one configuration (``docker compose --scale``) take distinct indices
+    from their hostnames, so their seeds, worker ids and instance ids differ."""
+    if cfg.worker_index >= 0:
+        return cfg
+    host = socket.gethostname()
+    return dataclasses.replace(cfg, worker_index=zlib.crc32(host.encode()) % 100_000, instance=host)
+
+
+class EnvWorkerCore:
+    """Steps one environment and packs consecutive steps into TransitionBatches."""
+
+    def __init__(self, cfg: EnvWorkerConfig) -> None:
+        cfg = resolve_worker_index(cfg)
+        self.cfg = cfg
+        self.worker_id = f"w{cfg.worker_index}"
+        self.env = make_env(cfg.env, **env_kwargs(cfg))
+        self.spec: EnvSpec = self.env.unwrapped.env_spec()
+        seed = cfg.seed + cfg.worker_index
+        self.policy = RandomPolicy(self.env.action_space, seed)
+        self.observation, _ = self.env.reset(seed=seed)
+        self.episode, self.step_in_episode = 0, 0
+        self.env_steps, self.seq = 0, 0
+
+    def collect(self, steps: int | None = None) -> TransitionBatch:
+        """Step the environment ``steps`` times (resetting at episode ends) and return the batch."""
+        steps = steps or self.cfg.batch_steps
+        d, a = self.spec.state_dim, self.spec.action_dim
+        state, next_state = np.empty((steps, d), np.float32), np.empty((steps, d), np.float32)
+        action, reward = np.empty((steps, a), np.float32), np.empty(steps, np.float32)
+        terminated, truncated = np.zeros(steps, bool), np.zeros(steps, bool)
+        episode, step = np.empty(steps, np.int64), np.empty(steps, np.int32)
+        graphs = np.empty((steps, self.spec.num_factors, self.spec.num_factors + 1), np.uint8) if self.cfg.local_graphs else None
+        for t in range(steps):
+            act = self.policy.act(self.observation)
+            env_action = int(act[0]) if self.spec.action_kind == "categorical" else act
+            obs, r, term, trunc, info = self.env.step(env_action)
+            state[t], action[t], reward[t], next_state[t] = self.observation, act, r, obs
+            terminated[t], truncated[t], episode[t], step[t] = term, trunc, self.episode, self.step_in_episode
+            if graphs is not None:
+                graphs[t] = info["local_graph"]
+            self.step_in_episode += 1
+            self.observation = obs
+            if term or trunc:
+                self.observation, _ = self.env.reset()
+                self.episode, self.step_in_episode = self.episode + 1, 0
+        self.env_steps += steps
+        batch = TransitionBatch(worker_id=self.worker_id, seq=self.seq, policy_version=self.policy.version,
+                                state=state, action=action, reward=reward, next_state=next_state,
+                                terminated=terminated, truncated=truncated, episode_id=episode, step=step,
+                                local_graph=graphs)
+        self.seq += 1
+        return batch

@@ -1,0 +1,1 @@
+"""graph-evaluator: CMI of the latest dynamics weights on held-out episodes -> causal graph reports."""

@@ -1,0 +1,3 @@
+from services.graph_evaluator.service import main
+
+main()

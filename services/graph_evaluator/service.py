@@ -1,0 +1,126 @@
+"""graph-evaluator service shell: the only graph-evaluator file that touches the bus."""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+
+from proto import topics
+from proto.codec import ProtocolError, decode, encode
+from proto.messages import GraphReport, TransitionBatch, Weights
+from services.bus.base import Transport
+from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.graph_evaluator.core import GraphEvaluatorCore
+from services.runtime.config import parse_config, write_config
+from services.runtime.shell import ServiceShell, setup_logging
+
+SERVICE = "graph-evaluator"
+KIND = "cdl"
+SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
+log = logging.getLogger(SERVICE)
+
+
+class _Metrics:
+    def __init__(self, shell: ServiceShell) -> None:
+        m = shell.metrics
+        self.scores = {name: m.gauge(f"causeway_graph_{name}_ratio", f"Learned graph {name} against the ground truth")
+                       for name in SCORES}
+        self.best_threshold = m.gauge("causeway_graph_best_threshold_nats", "CMI threshold with the best F1")
+        self.edges = m.gauge("causeway_graph_edges", "Edges in the learned graph (self-edges excluded)")
+        self.classes = m.gauge("causeway_abstraction_factors", "Factors per abstraction class", ("class",))
+        self.reports = m.counter("causeway_graph_reports", "GraphReports published")
+        self.heldout = m.gauge("causeway_heldout_transitions", "Held-out transitions available for CMI")
+        self.version = m.gauge("causeway_graph_weights_version", "Weights version of the last report")
+        self.env_steps = m.gauge("causeway_graph_env_steps", "Env steps behind the last report")
+        self.eval_seconds = m.histogram("causeway_graph_eval_seconds", "Duration of one all-pairs CMI evaluation",
+                                        (0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32))
+
+    def observe(self, report: GraphReport) -> None:
+        for name, gauge in self.scores.items():
+            if name in report.metrics:
+                gauge.set(report.metrics[name])
+        if "best_threshold" in report.metrics:
+            self.best_threshold.set(report.metrics["best_threshold"])
+        n = report.adjacency.shape[0]
+        self.edges.set(int(report.adjacency.sum()) - int(report.adjacency[range(n), range(n)].sum()))
+        for cls in ("controllable", "action_relevant", "action_irrelevant"):
+            self.classes.labels(**{"class": cls}).set(len(getattr(report, cls)))
+        self.reports.inc()
+        self.version.set(report.weights_version)
+        self.env_steps.set(report.env_steps)
+
+
+def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
+    shell = ServiceShell(SERVICE, cfg, transport)
+    metrics = _Metrics(shell)
+    transitions = shell.inbox("transitions", TransitionBatch, maxsize=256)
+    weights = shell.inbox("weights", Weights, maxsize=2)
+    shell.subscribe(topics.transitions(cfg.run_id), transitions)
+    shell.subscribe(topics.weights(cfg.run_id, KIND), weights)
+    latest_graph = shell.transport.serve_latest(topics.graph(cfg.run_id, KIND))
+    spec = shell.wait_for_spec()
+    if spec is None:
+        shell.close()
+        return
+    core = GraphEvaluatorCore(cfg, spec, KIND)
+    ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
+    write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
+    if core.restore(ckpt):
+        log.info("resumed with %d held-out transitions", core.heldout.size)
+    _catch_up(shell, core, cfg)
+    last_eval, last_ckpt = 0.0, time.monotonic()
+    try:
+        while not shell.stopping.is_set():
+            shell.poll_control()
+            for _, batch in transitions.drain():
+                shell.guarded(core.ingest, batch)
+            for _, w in weights.drain():
+                _load(core, w, shell)
+            metrics.heldout.set(core.heldout.size)
+            now = time.monotonic()
+            if not shell.paused and core.due and now - last_eval >= cfg.min_interval_s:
+                t0 = time.perf_counter()
+                report = core.evaluate()
+                metrics.eval_seconds.observe(time.perf_counter() - t0)
+                latest_graph.set(encode(report))
+                metrics.observe(report)
+                last_eval = now
+            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
+                core.checkpoint(ckpt)
+                shell.checkpoint_requested, last_ckpt = False, now
+            shell.beat({"heldout": core.heldout.size, "evaluated_version": core.evaluated_version,
+                        **(core.history[-1] if core.history else {})})
+            time.sleep(0.02)
+    finally:
+        core.checkpoint(ckpt)
+        latest_graph.close()
+        shell.close()
+
+
+def _catch_up(shell: ServiceShell, core: GraphEvaluatorCore, cfg: GraphEvaluatorConfig) -> None:
+    """A late (or restarted) evaluator asks for the current weights instead of waiting for the next ones."""
+    for key, payload in shell.transport.query(topics.weights(cfg.run_id, KIND), timeout=1.0):
+        try:
+            _load(core, decode(payload, Weights), shell)
+        except ProtocolError as exc:
+            shell.metrics.reject(exc.reason)
+
+
+def _load(core: GraphEvaluatorCore, w: Weights, shell: ServiceShell) -> None:
+    try:
+        core.load_weights(w)
+    except ValueError as exc:
+        shell.metrics.reject("inconsistent")
+        log.warning("rejected weights v%d: %s", w.version, exc)
+
+
+def main(argv: list[str] | None = None) -> None:
+    setup_logging(SERVICE)
+    import torch
+    torch.set_num_threads(1)
+    run(parse_config(GraphEvaluatorConfig, argv))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

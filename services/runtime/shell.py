@@ -1,0 +1,165 @@
+"""The thin layer every service.py shares: bus session, liveliness, metrics, control, inboxes, beats.
+
+Cores never import this module. A service's ``run(cfg)`` builds a ``ServiceShell``, wires its core
+to inboxes and publishers, and loops until ``shell.stopping``.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+from typing import Any, Callable
+
+from proto import topics
+from proto.codec import ProtocolError, decode, encode
+from proto.messages import Control, EnvSpec, ServiceStats
+from services.bus.base import Transport
+from services.runtime.config import ServiceConfig
+from services.runtime.metrics import ServiceMetrics
+
+log = logging.getLogger(__name__)
+
+
+class Inbox:
+    """A bounded queue of validated messages from one subscription.
+
+    Invalid payloads are counted in ``causeway_messages_rejected_total{reason}`` and dropped; when the
+    queue is full the oldest message is dropped and counted, so a slow consumer never blocks the bus.
+    """
+
+    def __init__(self, name: str, expected: type | tuple[type, ...], maxsize: int, metrics: ServiceMetrics) -> None:
+        self.name, self.expected, self.metrics = name, expected, metrics
+        self.queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=maxsize)
+
+    def on_payload(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(payload, self.expected)
+        except ProtocolError as exc:
+            self.metrics.reject(exc.reason)
+            log.warning("rejected message on %s: %s", key, exc)
+            return
+        self.metrics.received.labels(type=type(message).TYPE).inc()
+        while True:
+            try:
+                self.queue.put_nowait((key, message))
+                break
+            except queue.Full:
+                try:
+                    self.queue.get_nowait()
+                    self.metrics.dropped.labels(reason=f"{self.name}_queue_full").inc()
+                except queue.Empty:
+                    pass
+        self.metrics.queue_depth.labels(queue=self.name).set(self.queue.qsize())
+
+    def drain(self, limit: int = 1_000_000) -> list[tuple[str, Any]]:
+        items = []
+        while len(items) < limit:
+            try:
+                items.append(self.queue.get_nowait())
+            except queue.Empty:
+                break
+        self.metrics.queue_depth.labels(queue=self.name).set(self.queue.qsize())
+        return items
+
+    def get(self, timeout: float) -> tuple[str, Any] | None:
+        try:
+            return self.queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+
+class ServiceShell:
+    """Bus session, liveliness token, /metrics, control commands and progress beats of one service."""
+
+    def __init__(self, service: str, cfg: ServiceConfig, transport: Transport | None = None) -> None:
+        self.service, self.cfg = service, cfg
+        if transport is None:
+            from services.bus.zenoh_transport import ZenohTransport
+            transport = ZenohTransport(cfg.zenoh_connect)
+        self.transport = transport
+        self.metrics = ServiceMetrics(service, cfg.instance)
+        self.metrics.serve(cfg.metrics_port)
+        self.stopping = threading.Event()
+        self.paused = False
+        self.checkpoint_requested = False
+        self._handles: list[Any] = []
+        self._last_beat = 0.0
+        self._control = self.inbox("control", Control, maxsize=64)
+        for target in (service, "all"):
+            self._handles.append(transport.subscribe(topics.control(cfg.run_id, target), self._control.on_payload))
+        self._handles.append(transport.declare_token(topics.alive(cfg.run_id, service, cfg.instance)))
+
+    def install_signal_handlers(self) -> None:
+        """SIGTERM/SIGINT ask the loop to stop cleanly (checkpoint, then exit)."""
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: self.stopping.set())
+
+    def inbox(self, name: str, expected: type | tuple[type, ...], maxsize: int) -> Inbox:
+        return Inbox(name, expected, maxsize, self.metrics)
+
+    def subscribe(self, key_expr: str, inbox: Inbox) -> None:
+        self._handles.append(self.transport.subscribe(key_expr, inbox.on_payload))
+
+    def publish(self, key: str, message: Any, reliable: bool = True) -> int:
+        payload = encode(message)
+        self.transport.publish(key, payload, reliable=reliable)
+        return len(payload)
+
+    def guarded(self, apply: Callable[[Any], Any], message: Any) -> Any:
+        """``apply(message)``; a ProtocolError (the message does not fit this run) is counted and dropped."""
+        try:
+            return apply(message)
+        except ProtocolError as exc:
+            self.metrics.reject(exc.reason)
+            log.warning("rejected %s: %s", type(message).__name__, exc)
+            return None
+
+    def poll_control(self) -> None:
+        """Apply pending control commands to the shell's flags."""
+        for _, command in self._control.drain():
+            log.info("control: %s %s", command.command, command.argument)
+            if command.command == "stop":
+                self.stopping.set()
+            elif command.command == "pause":
+                self.paused = True
+            elif command.command == "resume":
+                self.paused = False
+            elif command.command == "checkpoint":
+                self.checkpoint_requested = True
+
+    def wait_for_spec(self, poll_s: float = 0.5) -> EnvSpec | None:
+        """Query the env-workers' EnvSpec until one answers (None if stopped first)."""
+        while not self.stopping.is_set():
+            for key, payload in self.transport.query(topics.env_spec(self.cfg.run_id), timeout=poll_s):
+                try:
+                    return decode(payload, EnvSpec)
+                except ProtocolError as exc:
+                    self.metrics.reject(exc.reason)
+                    log.warning("rejected EnvSpec from %s: %s", key, exc)
+            self.stopping.wait(poll_s)
+        return None
+
+    def beat(self, values: dict[str, float], force: bool = False) -> None:
+        """Publish a ServiceStats progress beat, at most every ``stats_interval_s``."""
+        now = time.time()
+        if not force and now - self._last_beat < self.cfg.stats_interval_s:
+            return
+        self._last_beat = now
+        stats = ServiceStats(service=self.service, instance=self.cfg.instance,
+                             values={**{k: float(v) for k, v in values.items()},
+                                     "messages_rejected": float(self.metrics.rejected_count)}, timestamp=now)
+        self.publish(topics.stats(self.cfg.run_id, self.service, self.cfg.instance), stats, reliable=False)
+
+    def close(self) -> None:
+        for handle in reversed(self._handles):
+            try:
+                handle.close()
+            except Exception:  # closing must go on for the rest
+                log.exception("closing a bus handle failed")
+        self.transport.close()
+
+
+def setup_logging(service: str) -> None:
+    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {service} %(levelname)s %(name)s: %(message)s")

@@ -1,0 +1,39 @@
+"""Configuration of a local run (``causeway run``)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from causal.cdl import CDLConfig
+from services.runtime.config import doc
+
+_CDL = CDLConfig()
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """causeway run: start a router and every service locally, learn, report."""
+
+    env: str = doc("chemical", "environment: chemical")
+    graph: str = doc("full", "Chemical object graph: collider, chain, full or PATH.json")
+    num_objects: int = doc(10, "Chemical: number of objects")
+    cpt_seed: int = doc(0, "Chemical: seed of the fixed conditional probability tables")
+    seed: int = doc(0, "run seed (worker i uses seed + i)")
+    workers: int = doc(1, "number of env-worker processes")
+    max_seconds: float = doc(900.0, "stop after this many seconds of wall time (0: no limit)")
+    max_env_steps: int = doc(0, "stop after this many env steps (0: no limit)")
+    target_f1: float = doc(0.0, "stop once the graph's F1 reaches this (0: never)")
+    target_metric: str = doc("f1", "metric compared with --target-f1: f1 (working threshold) or best_threshold_f1")
+    run_id: str = doc("", "run id (default: derived from env, graph and time)")
+    run_dir: str = doc("", "run directory (default: runs/<run_id>); an existing one is resumed")
+    router_port: int = doc(7447, "TCP port of the Zenoh router on 127.0.0.1 (0: pick a free one)")
+    metrics_base_port: int = doc(9100, "Prometheus ports: learner +1, evaluator +2, worker i +10+i (0: none)")
+    steps_per_second: float = doc(2000.0, "throttle per env-worker (0: unthrottled)")
+    lr: float = doc(_CDL.lr, "CDL Adam learning rate")
+    batch_size: int = doc(_CDL.batch_size, "CDL batch size")
+    feature_dim: int = doc(_CDL.feature_dim, "CDL feature size (and feature-network hidden width)")
+    predictor_hidden: int = doc(_CDL.predictor_hidden, "CDL head hidden width")
+    cmi_threshold: float = doc(_CDL.cmi_threshold, "CMI edge threshold, nats")
+    eval_interval_s: float = doc(5.0, "minimum seconds between graph evaluations")
+    publish_every_s: float = doc(5.0, "seconds between weight publications")
+    checkpoint_every_s: float = doc(30.0, "seconds between service checkpoints")
+    progress: bool = doc(True, "show live progress on the terminal")

@@ -1,0 +1,84 @@
+"""Service processes: spawn, watch, restart with back-off, stop politely, then firmly."""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger("supervisor")
+
+
+@dataclass
+class ManagedProcess:
+    """One service instance as an OS process (``python -m <module>``) with its environment."""
+
+    name: str
+    module: str
+    environ: dict[str, str]
+    log_path: Path
+    restarts: int = 0
+    max_restarts: int = 20
+    process: subprocess.Popen | None = None
+    next_start: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+
+    def start(self) -> None:
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, **self.environ, "PYTHONUNBUFFERED": "1"}
+        with open(self.log_path, "ab") as out:
+            self.process = subprocess.Popen([sys.executable, "-m", self.module], env=env, stdout=out,
+                                            stderr=subprocess.STDOUT, start_new_session=True)
+        log.info("started %s (pid %d)", self.name, self.process.pid)
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid if self.process else None
+
+    def alive(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def check(self, now: float) -> bool:
+        """Restart a crashed process after a back-off; returns True when it (re)started now."""
+        if self.process is None or self.alive():
+            return False
+        if self.next_start == 0.0:
+            code = self.process.returncode
+            self.exit_codes.append(code)
+            if self.restarts >= self.max_restarts:
+                raise RuntimeError(f"{self.name} crashed {self.restarts + 1} times; last exit code {code}; see {self.log_path}")
+            self.next_start = now + min(0.5 * 2 ** self.restarts, 10.0)
+            log.warning("%s exited with %s; restarting", self.name, code)
+        if now >= self.next_start:
+            self.restarts += 1
+            self.next_start = 0.0
+            self.start()
+            return True
+        return False
+
+    def terminate(self) -> None:
+        if self.alive():
+            self.process.send_signal(signal.SIGTERM)
+
+    def wait(self, timeout: float) -> None:
+        if self.process is None:
+            return
+        try:
+            self.process.wait(timeout=max(timeout, 0.01))
+        except subprocess.TimeoutExpired:
+            log.warning("%s did not stop in time; killing", self.name)
+            self.process.kill()
+            self.process.wait()
+
+
+def stop_all(processes: list[ManagedProcess], timeout: float = 30.0) -> None:
+    """SIGTERM everyone (they checkpoint and exit), then SIGKILL whoever is still there."""
+    for p in processes:
+        p.terminate()
+    deadline = time.monotonic() + timeout
+    for p in processes:
+        p.wait(deadline - time.monotonic())

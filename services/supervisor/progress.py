@@ -1,0 +1,78 @@
+"""The live progress line of ``causeway run``: what each service last reported."""
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+from proto.messages import GraphReport, ServiceStats
+
+
+class Progress:
+    """Keeps the newest stats per service instance and renders one status line."""
+
+    def __init__(self, stream: TextIO = sys.stderr, interactive: bool | None = None, every_s: float = 10.0) -> None:
+        self.stream = stream
+        self.interactive = stream.isatty() if interactive is None else interactive
+        self.every_s = every_s
+        self.stats: dict[tuple[str, str], ServiceStats] = {}
+        self.report: GraphReport | None = None
+        self.started = time.monotonic()
+        self._last_line = 0.0
+        self._rate: dict[str, tuple[float, float]] = {}
+
+    def on_stats(self, stats: ServiceStats) -> None:
+        self.stats[(stats.service, stats.instance)] = stats
+
+    def on_report(self, report: GraphReport) -> None:
+        self.report = report
+
+    def value(self, service: str, key: str) -> float:
+        return sum(s.values.get(key, 0.0) for (svc, _), s in self.stats.items() if svc == service)
+
+    def env_steps(self) -> int:
+        return int(self.value("env-worker", "env_steps"))
+
+    def updates(self) -> int:
+        return int(self.value("dynamics-learner", "updates"))
+
+    def _per_second(self, name: str, total: float) -> float:
+        now = time.monotonic()
+        last_t, last_v = self._rate.get(name, (now, total))
+        self._rate[name] = (now, total)
+        return (total - last_v) / (now - last_t) if now > last_t else 0.0
+
+    def line(self, restarts: int) -> str:
+        elapsed = time.monotonic() - self.started
+        steps, updates = self.env_steps(), self.updates()
+        nll = self.value("dynamics-learner", "nll_full")
+        parts = [f"[{elapsed:6.0f}s]", f"env {steps:,} steps ({self._per_second('env', steps):,.0f}/s)",
+                 f"updates {updates:,} ({self._per_second('upd', updates):.1f}/s) nll {nll:.3f}"]
+        if self.report is not None and self.report.metrics:
+            m = self.report.metrics
+            parts.append(f"graph v{self.report.weights_version} F1 {m['f1']:.3f} acc {m['accuracy']:.3f} "
+                         f"(best-threshold F1 {m['best_threshold_f1']:.3f})")
+        elif self.report is not None:
+            parts.append(f"graph v{self.report.weights_version} ({int(self.report.adjacency.sum())} edges)")
+        else:
+            parts.append("graph: waiting for the first report")
+        if restarts:
+            parts.append(f"restarts {restarts}")
+        return " | ".join(parts)
+
+    def show(self, restarts: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.interactive:
+            if force or now - self._last_line >= 0.5:
+                self.stream.write("\r\x1b[2K" + self.line(restarts))
+                self.stream.flush()
+                self._last_line = now
+        elif force or now - self._last_line >= self.every_s:
+            self.stream.write(self.line(restarts) + "\n")
+            self.stream.flush()
+            self._last_line = now
+
+    def finish(self) -> None:
+        if self.interactive:
+            self.stream.write("\n")
+            self.stream.flush()

@@ -1,0 +1,118 @@
+"""What a run leaves behind: summary.json, the learned graph beside the true one, learning curves."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from causal.abstraction import Abstraction  # noqa: E402
+from proto.messages import GraphReport  # noqa: E402
+
+SUMMARY_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold", "best_threshold_f1",
+                  "best_threshold_accuracy", "best_threshold_precision", "best_threshold_recall")
+
+
+def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict[str, float]]) -> dict[str, Any]:
+    """summary.json content: the run's facts plus the last graph report's scores and matrices."""
+    out = dict(base)
+    if report is None:
+        out["graph_report"] = None
+        return out
+    abstraction = Abstraction(report.controllable, report.action_relevant, report.action_irrelevant)
+    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES if k in report.metrics})
+    out.update({
+        "threshold": report.threshold,
+        "weights_version": report.weights_version,
+        "graph_env_steps": report.env_steps,
+        "graph_updates": report.updates,
+        "factor_names": list(report.factor_names) + ["action"],
+        "learned_graph": report.adjacency.astype(int).tolist(),
+        "true_graph": report.true_graph.astype(int).tolist() if report.true_graph is not None else None,
+        "cmi": np.round(report.cmi.astype(float), 5).tolist(),
+        "abstraction": abstraction.named(report.factor_names),
+        "scoring": "off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored)",
+        "history": history,
+    })
+    return out
+
+
+def write_summary(path: Path, content: dict[str, Any]) -> None:
+    path.write_text(json.dumps(content, indent=1) + "\n")
+
+
+def plot_graphs(report: GraphReport, path: Path) -> None:
+    """Heat maps: learned CMI graph, true graph, and the comparison (TP / FP / FN marked)."""
+    names = list(report.factor_names) + ["action"]
+    panels = [("learned: log10 CMI (nats), self-edges blank", _log_cmi(report.cmi, report.threshold), "viridis")]
+    if report.true_graph is not None:
+        panels.append(("ground truth", report.true_graph.astype(float), "Greys"))
+        panels.append(("learned vs truth", _comparison(report.adjacency, report.true_graph), None))
+    side = max(6.5, 0.28 * len(names))
+    fig, axes = plt.subplots(1, len(panels), figsize=(side * len(panels), side), squeeze=False)
+    for ax, (title, matrix, cmap) in zip(axes[0], panels):
+        _heatmap(ax, matrix, cmap, title, names, report.factor_names)
+    f1 = report.metrics.get("f1")
+    fig.suptitle(f"{report.kind} graph, weights v{report.weights_version}, {report.env_steps} env steps"
+                 + (f", F1 {f1:.3f}" if f1 is not None else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _log_cmi(cmi: np.ndarray, threshold: float) -> np.ndarray:
+    """log10 of CMI floored at threshold / 100, with the (always kept) self-edges masked out."""
+    out = np.log10(np.clip(cmi.astype(float), threshold / 100, None))
+    n = cmi.shape[0]
+    out[np.arange(n), np.arange(n)] = np.nan
+    return out
+
+
+def _comparison(learned: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    learned, truth = learned.astype(bool), truth.astype(bool)
+    code = np.zeros(learned.shape)
+    code[learned & truth] = 3     # true positive
+    code[learned & ~truth] = 2    # false positive
+    code[~learned & truth] = 1    # false negative
+    return code
+
+
+def _heatmap(ax, matrix: np.ndarray, cmap: str | None, title: str, cols: list[str], rows: tuple[str, ...]) -> None:
+    if cmap is None:
+        from matplotlib.colors import ListedColormap
+        cmap = ListedColormap(["#f4f4f4", "#e0a030", "#d03030", "#2a8a3a"])
+        ax.imshow(matrix, cmap=cmap, vmin=0, vmax=3)
+        ax.set_title(title + "\n(green TP, red FP, orange FN)")
+    else:
+        im = ax.imshow(matrix, cmap=cmap, interpolation="nearest")
+        ax.set_title(title)
+        plt.colorbar(im, ax=ax, fraction=0.046)
+    size = 8 if len(cols) <= 20 else 6
+    ax.set_xticks(range(len(cols)), cols, rotation=90, fontsize=size)
+    ax.set_yticks(range(len(rows)), rows, fontsize=size)
+    ax.set_xlabel("cause (factor at t, action last)")
+    ax.set_ylabel("effect (factor at t+1)")
+
+
+def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
+    """Graph scores against env steps over the run."""
+    if not history:
+        return
+    steps = [h["env_steps"] for h in history]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for key in ("f1", "best_threshold_f1", "accuracy", "roc_auc"):
+        if key in history[0]:
+            ax.plot(steps, [h[key] for h in history], label=key)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("score")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

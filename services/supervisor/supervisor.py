@@ -1,0 +1,222 @@
+"""``causeway run``: the embedded default stack, wired in one readable place.
+
+A Zenoh router runs inside this process (a Python session in router mode on 127.0.0.1, multicast
+scouting off); every service runs as its own OS process connected to it. The supervisor restarts
+crashed services (they resume from their checkpoints), shows live progress from the services' stats
+beats and graph reports, stops on a target F1 or a time/step budget, and writes the run directory.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+from proto import topics
+from proto.codec import ProtocolError, decode, encode
+from proto.messages import Control, GraphReport, ServiceStats
+from services.bus.router import free_tcp_port, start_router, wait_for_router
+from services.bus.zenoh_transport import ZenohTransport
+from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.env_worker.config import EnvWorkerConfig
+from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.runtime.config import to_environ, write_config
+from services.supervisor import report as reporting
+from services.supervisor.config import RunConfig
+from services.supervisor.processes import ManagedProcess, stop_all
+from services.supervisor.progress import Progress
+
+log = logging.getLogger("supervisor")
+
+
+def resolve(cfg: RunConfig) -> RunConfig:
+    """Fill in the derived defaults: run id, run directory, router port."""
+    run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
+                            f"{cfg.env}-{Path(cfg.graph).stem}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
+    run_id = "".join(c if c.isalnum() or c in "_.-" else "-" for c in run_id)
+    return dataclasses.replace(cfg, run_id=run_id, run_dir=cfg.run_dir or f"runs/{run_id}",
+                               router_port=cfg.router_port or free_tcp_port())
+
+
+def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict[str, object]:
+    """The wiring: what each service is told (all of it lands in <run_dir>/config.json)."""
+    common = dict(run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir)
+    port = (lambda offset: cfg.metrics_base_port + offset if cfg.metrics_base_port else 0)
+    learner = DynamicsLearnerConfig(**common, metrics_port=port(1), seed=cfg.seed, lr=cfg.lr,
+                                    batch_size=cfg.batch_size, feature_hidden=cfg.feature_dim,
+                                    feature_dim=cfg.feature_dim, predictor_hidden=cfg.predictor_hidden,
+                                    cmi_threshold=cfg.cmi_threshold, publish_every_s=cfg.publish_every_s,
+                                    checkpoint_every_s=cfg.checkpoint_every_s)
+    evaluator = GraphEvaluatorConfig(**common, metrics_port=port(2), cmi_threshold=cfg.cmi_threshold,
+                                     min_interval_s=cfg.eval_interval_s, seed=cfg.seed,
+                                     checkpoint_every_s=cfg.checkpoint_every_s)
+    return {"dynamics-learner": learner, "graph-evaluator": evaluator,
+            "env-worker": worker_config(cfg, connect, worker_index)}
+
+
+def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
+    port = cfg.metrics_base_port + 10 + index if cfg.metrics_base_port else 0
+    return EnvWorkerConfig(run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir, metrics_port=port,
+                           instance=str(index), env=cfg.env, graph=cfg.graph, num_objects=cfg.num_objects,
+                           cpt_seed=cfg.cpt_seed, seed=cfg.seed, worker_index=index,
+                           max_steps_per_second=cfg.steps_per_second)
+
+
+MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
+           "graph-evaluator": "services.graph_evaluator"}
+
+
+class Supervisor:
+    """Owns the router, the service processes and the run directory of one local run."""
+
+    def __init__(self, cfg: RunConfig) -> None:
+        self.cfg = resolve(cfg)
+        self.run_dir = Path(self.cfg.run_dir)
+        self.connect = f"tcp/127.0.0.1:{self.cfg.router_port}"
+        self.processes: dict[str, ManagedProcess] = {}
+        self.progress = Progress(interactive=None if self.cfg.progress else False,
+                                 every_s=10.0 if self.cfg.progress else 1e9)
+        self.history: list[dict[str, float]] = []
+        self.last_report: GraphReport | None = None
+        self.stop_reason = ""
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+
+    def process(self, name: str, module: str, service_cfg: object) -> ManagedProcess:
+        proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log")
+        self.processes[name] = proc
+        return proc
+
+    def start(self) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._write_run_config()
+        self.router = start_router(f"tcp/127.0.0.1:{self.cfg.router_port}")
+        wait_for_router(self.connect)
+        self.bus = ZenohTransport(self.connect)
+        self.bus.subscribe(topics.stats(self.cfg.run_id), self._on_stats)
+        self.bus.subscribe(topics.graph(self.cfg.run_id), self._on_graph)
+        configs = service_configs(self.cfg, self.connect)
+        for name in ("dynamics-learner", "graph-evaluator"):
+            self.process(name, MODULES[name], configs[name]).start()
+        for i in range(self.cfg.workers):
+            self.add_worker(i)
+        self._write_process_table()
+
+    def _write_process_table(self) -> None:
+        """<run_dir>/processes.json: pid, restarts and log of every service process (for operators)."""
+        table = {name: {"pid": p.pid, "module": p.module, "restarts": p.restarts, "log": str(p.log_path)}
+                 for name, p in self.processes.items()}
+        tmp = self.run_dir / "processes.json.tmp"
+        tmp.write_text(json.dumps({"router": self.connect, "supervisor_pid": os.getpid(), "processes": table}, indent=1))
+        tmp.replace(self.run_dir / "processes.json")
+
+    def add_worker(self, index: int) -> None:
+        self.process(f"env-worker-{index}", MODULES["env-worker"], worker_config(self.cfg, self.connect, index)).start()
+
+    def _write_run_config(self) -> None:
+        write_config(self.cfg, self.run_dir / "config.json")
+        (self.run_dir / "git_revision").write_text(_git_revision() + "\n")
+
+    def _on_stats(self, key: str, payload: bytes) -> None:
+        try:
+            self.progress.on_stats(decode(payload, ServiceStats))
+        except ProtocolError:
+            log.warning("bad stats message on %s", key)
+
+    def _on_graph(self, key: str, payload: bytes) -> None:
+        try:
+            report = decode(payload, GraphReport)
+        except ProtocolError:
+            log.warning("bad graph report on %s", key)
+            return
+        with self._lock:
+            self.last_report = report
+            self.history.append({"time": time.monotonic() - self.progress.started, "env_steps": report.env_steps,
+                                 "updates": report.updates, **report.metrics})
+        self.progress.on_report(report)
+
+    def run(self) -> dict:
+        """Start everything, supervise until a stop condition, then stop and report."""
+        started = time.monotonic()
+        handlers = {sig: signal.signal(sig, lambda *_: self.request_stop("interrupted"))
+                    for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            self.start()
+            while not self._stop.wait(0.2):
+                now = time.monotonic()
+                if any([proc.check(now) for proc in self.processes.values()]):
+                    self._write_process_table()
+                self.progress.show(self.restarts())
+                self._check_budget(now - started)
+        finally:
+            for sig, previous in handlers.items():
+                signal.signal(sig, previous)
+            self.progress.show(self.restarts(), force=True)
+            self.progress.finish()
+            self.shutdown()
+        return self.finish(time.monotonic() - started)
+
+    def request_stop(self, reason: str) -> None:
+        if not self.stop_reason:
+            self.stop_reason = reason
+        self._stop.set()
+
+    def _check_budget(self, elapsed: float) -> None:
+        cfg = self.cfg
+        report = self.last_report
+        if cfg.target_f1 and report is not None and report.metrics.get(cfg.target_metric, 0.0) >= cfg.target_f1:
+            self.request_stop(f"target {cfg.target_metric} {cfg.target_f1} reached")
+        elif cfg.max_env_steps and self.progress.env_steps() >= cfg.max_env_steps:
+            self.request_stop(f"env step budget {cfg.max_env_steps} reached")
+        elif cfg.max_seconds and elapsed >= cfg.max_seconds:
+            self.request_stop(f"time budget {cfg.max_seconds:.0f}s reached")
+
+    def restarts(self) -> int:
+        return sum(p.restarts for p in self.processes.values())
+
+    def shutdown(self) -> None:
+        if hasattr(self, "bus"):
+            try:
+                self.bus.publish(topics.control(self.cfg.run_id, "all"), encode(Control("stop", issued_at=time.time())))
+            except Exception:
+                log.exception("could not broadcast stop")
+        stop_all(list(self.processes.values()))
+        if hasattr(self, "bus"):
+            self.bus.close()
+        if hasattr(self, "router"):
+            self.router.close()
+
+    def finish(self, wall_seconds: float) -> dict:
+        cfg = self.cfg
+        with self._lock:
+            report, history = self.last_report, list(self.history)
+        base = {"run_id": cfg.run_id, "env": cfg.env, "graph": cfg.graph, "num_objects": cfg.num_objects,
+                "seed": cfg.seed, "workers": cfg.workers, "env_steps": self.progress.env_steps(),
+                "updates": self.progress.updates(), "wall_seconds": round(wall_seconds, 1),
+                "stopped_because": self.stop_reason or "stopped", "restarts": self.restarts(),
+                "git_revision": _git_revision()}
+        content = reporting.summary(report, base, history)
+        reporting.write_summary(self.run_dir / "summary.json", content)
+        if report is not None:
+            reporting.plot_graphs(report, self.run_dir / "graph.png")
+            reporting.plot_learning_curve(history, self.run_dir / "learning_curve.png")
+        return content
+
+
+def _git_revision() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def print_summary(content: dict) -> None:
+    keys = ("env", "graph", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
+            "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
+    print(json.dumps({k: content.get(k) for k in keys}, indent=1))
