@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 ARGS ?=
 N ?= 2
 
-.PHONY: run test test-slow test-all bench lint up down scale logs sysdeps clean venv
+.PHONY: run test test-slow test-all bench bench-f1 lint up down scale logs sysdeps clean venv
 
 venv: $(STAMP)
 
@@ -44,6 +44,9 @@ test-all: $(STAMP) sysdeps
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.run_all $(ARGS)
+
+bench-f1: $(STAMP)
+	$(PY) -m benchmarks.bench_time_to_f1 $(ARGS)
 
 lint: $(STAMP)
 	$(PY) -m compileall -q services proto envs causal benchmarks tests
