@@ -1,0 +1,128 @@
+"""compose.yaml: valid for docker-compose 1.29, every service wired to the router and scrapeable,
+env-worker scalable; deploy/zenoh/router.json5 is a router config the Zenoh 1.x parser accepts."""
+from __future__ import annotations
+
+import os
+import subprocess
+import tomllib
+from typing import Any
+
+import pytest
+
+from tests.deploy import REPO, load_yaml, require_tool
+
+integration = pytest.mark.integration
+ROUTER_CONNECT = "tcp/router:7447"
+METRICS_PORT = "9100"
+
+
+def _compose_config(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("CAUSEWAY_", "ZENOH_", "GRAFANA_"))}
+    return subprocess.run([require_tool("docker-compose"), "-f", "compose.yaml", "config", *args], cwd=REPO,
+                          env=env, capture_output=True, text=True, timeout=60)
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    """The compose model as docker-compose 1.29 resolves it (anchors merged, variables defaulted)."""
+    result = _compose_config()
+    assert result.returncode == 0, result.stderr
+    return load_yaml(result.stdout)
+
+
+def _service_modules() -> dict[str, str]:
+    """Compose service name -> module, for every ``services/<pkg>/__main__.py``."""
+    mains = sorted((REPO / "services").glob("*/__main__.py"))
+    return {main.parent.name.replace("_", "-"): f"services.{main.parent.name}" for main in mains}
+
+
+def _causeway_services(compose: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {name: compose["services"][name] for name in _service_modules()}
+
+
+@integration
+def test_compose_config_is_valid_for_docker_compose_1_29() -> None:
+    result = _compose_config("--quiet")
+    assert result.returncode == 0, result.stderr
+
+
+@integration
+def test_every_service_with_a_main_module_runs_in_compose(compose: dict[str, Any]) -> None:
+    modules = _service_modules()
+    assert {"env-worker", "dynamics-learner", "graph-evaluator"} <= set(modules)
+    for name, module in modules.items():
+        assert name in compose["services"], f"{name} ({module}) is missing from compose.yaml"
+        assert compose["services"][name]["command"] == ["python", "-m", module]
+
+
+@integration
+def test_services_share_one_image_built_from_deploy(compose: dict[str, Any]) -> None:
+    services = _causeway_services(compose)
+    assert {s["build"]["dockerfile"] for s in services.values()} == {"deploy/Dockerfile"}
+    assert len({s["image"] for s in services.values()}) == 1
+    assert (REPO / "deploy" / "Dockerfile").is_file()
+
+
+@integration
+def test_services_are_healthchecked_restarted_and_wait_for_the_router(compose: dict[str, Any]) -> None:
+    for name, service in _causeway_services(compose).items():
+        health = " ".join(service["healthcheck"]["test"])
+        assert f"127.0.0.1:{METRICS_PORT}/metrics" in health, name
+        assert service["restart"] == "unless-stopped", name
+        condition = service["depends_on"]["router"]["condition"]
+        assert condition in ("service_healthy", "service_started"), name
+        env = service["environment"]
+        assert env["CAUSEWAY_ZENOH_CONNECT"] == ROUTER_CONNECT, name
+        assert env["CAUSEWAY_METRICS_PORT"] == METRICS_PORT, name
+        assert env["CAUSEWAY_RUN_DIR"] == f"/data/runs/{env['CAUSEWAY_RUN_ID']}", name
+        assert any(volume.split(":")[1] == "/data" for volume in service["volumes"]), name
+
+
+@integration
+def test_env_worker_scales_with_distinct_replicas(compose: dict[str, Any]) -> None:
+    worker = compose["services"]["env-worker"]
+    for fixed in ("container_name", "ports", "hostname"):
+        assert fixed not in worker, f"env-worker has {fixed}: `--scale env-worker=N` replicas would clash"
+    env = worker["environment"]
+    assert env["CAUSEWAY_WORKER_INDEX"] == "-1"
+    assert (env["CAUSEWAY_ENV"], env["CAUSEWAY_GRAPH"], env["CAUSEWAY_NUM_OBJECTS"]) == ("chemical", "full", "10")
+
+
+@integration
+def test_router_is_upstream_zenoh_1x_with_the_deploy_config(compose: dict[str, Any]) -> None:
+    router = compose["services"]["router"]
+    image, tag = router["image"].rsplit(":", 1)
+    assert image == "eclipse/zenoh" and tag.startswith("1."), router["image"]
+    assert router["command"] == ["-c", "/etc/zenoh/router.json5"]
+    assert any(v.endswith("deploy/zenoh/router.json5:/etc/zenoh/router.json5:ro") for v in router["volumes"])
+    assert "healthcheck" in router and router["restart"] == "unless-stopped"
+
+
+@integration
+def test_bind_mounts_point_at_files_in_the_repository(compose: dict[str, Any]) -> None:
+    for name, service in compose["services"].items():
+        for volume in service.get("volumes", []):
+            source = volume.split(":")[0]
+            if source.startswith("/"):
+                assert os.path.exists(source), f"{name} mounts missing {source}"
+
+
+def test_image_holds_every_package_the_project_installs() -> None:
+    """Services run from the source tree in /app: each package of pyproject.toml is copied there."""
+    include = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]["include"]
+    packages = {pattern.rstrip("*") for pattern in include}
+    dockerfile = (REPO / "deploy" / "Dockerfile").read_text()
+    ignored = {line.strip() for line in (REPO / ".dockerignore").read_text().splitlines()}
+    for package in packages:
+        assert dockerfile.count(f"COPY {package} ./{package}\n") == 2, f"{package} is not in both image stages"
+        assert package not in ignored, f".dockerignore drops {package}"
+
+
+def test_router_config_is_a_zenoh_router_without_multicast() -> None:
+    import zenoh
+
+    config = zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / "router.json5"))
+    assert config.get_json("mode") == '"router"'
+    assert config.get_json("listen/endpoints") == '["tcp/[::]:7447"]'
+    assert config.get_json("scouting/multicast/enabled") == "false"
+    assert config.get_json("plugins/rest/http_port") == "8000"  # the router healthcheck's port

@@ -1,0 +1,38 @@
+"""Config dataclasses map one-to-one onto flags and environment variables."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.env_worker.config import EnvWorkerConfig
+from services.runtime.config import parse_config, to_environ, write_config
+from services.supervisor.config import RunConfig
+
+
+def test_defaults_env_then_flags() -> None:
+    cfg = parse_config(EnvWorkerConfig, [], {})
+    assert cfg == EnvWorkerConfig()
+    cfg = parse_config(EnvWorkerConfig, ["--graph", "chain", "--local-graphs", "true"],
+                       {"CAUSEWAY_GRAPH": "collider", "CAUSEWAY_NUM_OBJECTS": "4"})
+    assert cfg.graph == "chain" and cfg.num_objects == 4 and cfg.local_graphs is True
+
+
+def test_environ_round_trip_for_every_service_config() -> None:
+    for cls in (EnvWorkerConfig, DynamicsLearnerConfig, RunConfig):
+        original = dataclasses.replace(cls(), run_id="abc") if hasattr(cls(), "run_id") else cls()
+        assert parse_config(cls, [], to_environ(original)) == original
+
+
+def test_bad_values_are_clear_errors() -> None:
+    with pytest.raises(SystemExit, match="CAUSEWAY_NUM_OBJECTS"):
+        parse_config(EnvWorkerConfig, [], {"CAUSEWAY_NUM_OBJECTS": "ten"})
+    with pytest.raises(SystemExit):
+        parse_config(EnvWorkerConfig, ["--num-objects", "ten"], {})
+
+
+def test_write_config(tmp_path) -> None:
+    write_config(RunConfig(graph="chain"), tmp_path / "c.json")
+    assert json.loads((tmp_path / "c.json").read_text())["graph"] == "chain"
