@@ -20,7 +20,7 @@ SCHEMA_VERSION = 1
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
-CONTROL_COMMANDS = ("pause", "resume", "checkpoint", "stop", "set_task")
+CONTROL_COMMANDS = ("pause", "resume", "checkpoint", "stop", "set_task", "scale")
 
 
 @dataclass(frozen=True)
