@@ -11,6 +11,7 @@ import dataclasses
 import json
 import logging
 import os
+import queue
 import signal
 import subprocess
 import threading
@@ -86,6 +87,10 @@ class Supervisor:
         self.stop_reason = ""
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        self._own_stop = -1.0
+        self.pending_scale: queue.Queue[str] = queue.Queue()
+        self.retired: list[ManagedProcess] = []
+        self.next_worker_index = 0
 
     def process(self, name: str, module: str, service_cfg: object) -> ManagedProcess:
         proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log")
@@ -100,6 +105,8 @@ class Supervisor:
         self.bus = ZenohTransport(self.connect)
         self.bus.subscribe(topics.stats(self.cfg.run_id), self._on_stats)
         self.bus.subscribe(topics.graph(self.cfg.run_id), self._on_graph)
+        for target in ("supervisor", "all"):
+            self.bus.subscribe(topics.control(self.cfg.run_id, target), self._on_control)
         configs = service_configs(self.cfg, self.connect)
         for name in ("dynamics-learner", "graph-evaluator"):
             self.process(name, MODULES[name], configs[name]).start()
@@ -117,6 +124,47 @@ class Supervisor:
 
     def add_worker(self, index: int) -> None:
         self.process(f"env-worker-{index}", MODULES["env-worker"], worker_config(self.cfg, self.connect, index)).start()
+
+    def worker_indices(self) -> list[int]:
+        return sorted(int(name.rsplit("-", 1)[1]) for name in self.processes if name.startswith("env-worker-"))
+
+    def scale_workers(self, count: int) -> None:
+        """Add workers (new indices, so new seeds) or retire the newest ones; nothing else restarts.
+
+        A retired worker gets SIGTERM, finishes and publishes the batch it is collecting, and exits."""
+        if count < 0:
+            raise ValueError(f"cannot scale env-worker to {count}")
+        current = self.worker_indices()
+        for _ in range(count - len(current)):
+            self.next_worker_index = max(self.next_worker_index, max(current, default=-1) + 1)
+            self.add_worker(self.next_worker_index)
+            self.next_worker_index += 1
+        for index in sorted(current, reverse=True)[: max(len(current) - count, 0)]:
+            proc = self.processes.pop(f"env-worker-{index}")
+            proc.terminate()
+            self.retired.append(proc)
+        self._write_process_table()
+        log.warning("env-worker scaled from %d to %d", len(current), count)
+
+    def _on_control(self, key: str, payload: bytes) -> None:
+        try:
+            command = decode(payload, Control)
+        except ProtocolError:
+            log.warning("bad control message on %s", key)
+            return
+        if command.command == "stop" and command.issued_at != self._own_stop:
+            self.request_stop("stopped by an operator")
+        elif command.command == "scale":
+            self.pending_scale.put(command.argument)
+
+    def _apply_scale_requests(self) -> None:
+        while not self.pending_scale.empty():
+            argument = self.pending_scale.get_nowait()
+            service, _, count = argument.partition("=")
+            if service != "env-worker" or not count.isdigit():
+                log.warning("ignored scale request %r (expected env-worker=N)", argument)
+                continue
+            self.scale_workers(int(count))
 
     def _write_run_config(self) -> None:
         write_config(self.cfg, self.run_dir / "config.json")
@@ -149,7 +197,8 @@ class Supervisor:
             self.start()
             while not self._stop.wait(0.2):
                 now = time.monotonic()
-                if any([proc.check(now) for proc in self.processes.values()]):
+                self._apply_scale_requests()
+                if any([proc.check(now) for proc in list(self.processes.values())]):
                     self._write_process_table()
                 self.progress.show(self.restarts())
                 self._check_budget(now - started)
@@ -182,10 +231,11 @@ class Supervisor:
     def shutdown(self) -> None:
         if hasattr(self, "bus"):
             try:
-                self.bus.publish(topics.control(self.cfg.run_id, "all"), encode(Control("stop", issued_at=time.time())))
+                self._own_stop = time.time()
+                self.bus.publish(topics.control(self.cfg.run_id, "all"), encode(Control("stop", issued_at=self._own_stop)))
             except Exception:
                 log.exception("could not broadcast stop")
-        stop_all(list(self.processes.values()))
+        stop_all(list(self.processes.values()) + self.retired)
         if hasattr(self, "bus"):
             self.bus.close()
         if hasattr(self, "router"):
