@@ -1,14 +1,24 @@
 """The ``causeway`` command: ``causeway run [flags]`` starts the embedded default stack.
 
 Every flag of ``causeway run`` is a field of ``services.supervisor.config.RunConfig``
-(``causeway run --help`` lists them with their defaults).
+(``causeway run --help`` lists them with their defaults). The operator commands act on a running
+stack (``causeway <command> --help`` for each; ``services/ops/``):
+
+    causeway status     (--run RUN [--connect E] | --run-dir runs/X) [--json] [--listen-s 2.5]
+    causeway scale env-worker N (--run ... | --run-dir ... | --compose-project P [--docker-host URL])
+    causeway stop       (--run RUN [--connect E] | --run-dir runs/X)
+    causeway checkpoint (--run RUN [--connect E] | --run-dir runs/X)
 """
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
+from typing import Callable
 
 from services.runtime.config import parse_config
+
+Command = Callable[[list[str]], int]
 
 
 def _run(argv: list[str]) -> int:
@@ -20,13 +30,39 @@ def _run(argv: list[str]) -> int:
     supervisor = Supervisor(cfg)
     print(f"causeway: run {supervisor.cfg.run_id} in {supervisor.run_dir} "
           f"(router {supervisor.connect}, logs in {supervisor.run_dir / 'logs'})", file=sys.stderr)
+    if supervisor.dashboard_url:
+        print(f"causeway: live graph at {supervisor.dashboard_url}", file=sys.stderr)
     content = supervisor.run()
     print_summary(content)
     print(f"causeway: wrote {supervisor.run_dir / 'summary.json'}", file=sys.stderr)
     return 0
 
 
-COMMANDS = {"run": _run}
+def _operator(name: str, module: str, function: str) -> Command:
+    """``causeway <name>``: ``services.ops.<module>.<function>(argv)``, imported only when used.
+
+    An ``OpsError`` becomes one line on stderr and its exit status (2: unreachable or invalid,
+    1: sent but not confirmed in time)."""
+
+    def command(argv: list[str]) -> int:
+        from services.ops.target import OpsError
+
+        try:
+            return getattr(importlib.import_module(f"services.ops.{module}"), function)(argv)
+        except OpsError as exc:
+            print(f"causeway {name}: {exc}", file=sys.stderr)
+            return exc.exit_code
+
+    return command
+
+
+COMMANDS: dict[str, Command] = {
+    "run": _run,
+    "status": _operator("status", "status", "main"),
+    "scale": _operator("scale", "control", "scale_main"),
+    "stop": _operator("stop", "control", "stop_main"),
+    "checkpoint": _operator("checkpoint", "control", "checkpoint_main"),
+}
 
 
 def main(argv: list[str] | None = None) -> int:

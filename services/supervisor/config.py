@@ -35,5 +35,6 @@ class RunConfig:
     cmi_threshold: float = doc(_CDL.cmi_threshold, "CMI edge threshold, nats")
     eval_interval_s: float = doc(5.0, "minimum seconds between graph evaluations")
     publish_every_s: float = doc(5.0, "seconds between weight publications")
+    dashboard_port: int = doc(8080, "port of the live causal-graph page on 127.0.0.1 (0: no dashboard)")
     checkpoint_every_s: float = doc(30.0, "seconds between service checkpoints")
     progress: bool = doc(True, "show live progress on the terminal")

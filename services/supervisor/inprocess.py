@@ -15,6 +15,7 @@ from proto import topics
 from proto.codec import encode
 from proto.messages import Control
 from services.bus.memory import InMemoryBus, InMemoryTransport
+from services.dashboard import service as dashboard_service
 from services.dynamics_learner import service as learner_service
 from services.env_worker import service as worker_service
 from services.graph_evaluator import service as evaluator_service
@@ -34,7 +35,8 @@ class InProcessStack:
         self.control = InMemoryTransport(self.bus)
         configs = service_configs(self.cfg, "memory")
         overrides = config_overrides or {}
-        runners: dict[str, Callable] = {"dynamics-learner": learner_service.run, "graph-evaluator": evaluator_service.run}
+        runners: dict[str, Callable] = {"dynamics-learner": learner_service.run, "graph-evaluator": evaluator_service.run,
+                                        "dashboard": dashboard_service.run}
         self.threads: list[threading.Thread] = []
         self.errors: list[BaseException] = []
         for name in services:

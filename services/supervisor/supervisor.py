@@ -23,6 +23,7 @@ from proto.codec import ProtocolError, decode, encode
 from proto.messages import Control, GraphReport, ServiceStats
 from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
+from services.dashboard.config import DashboardConfig
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.env_worker.config import EnvWorkerConfig
 from services.graph_evaluator.config import GraphEvaluatorConfig
@@ -56,7 +57,9 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
     evaluator = GraphEvaluatorConfig(**common, metrics_port=port(2), cmi_threshold=cfg.cmi_threshold,
                                      min_interval_s=cfg.eval_interval_s, seed=cfg.seed,
                                      checkpoint_every_s=cfg.checkpoint_every_s)
-    return {"dynamics-learner": learner, "graph-evaluator": evaluator,
+    dashboard = DashboardConfig(**common, metrics_port=port(3), http_host="127.0.0.1",
+                                http_port=cfg.dashboard_port, watch_run=cfg.run_id)
+    return {"dynamics-learner": learner, "graph-evaluator": evaluator, "dashboard": dashboard,
             "env-worker": worker_config(cfg, connect, worker_index)}
 
 
@@ -69,7 +72,7 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
 
 
 MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
-           "graph-evaluator": "services.graph_evaluator"}
+           "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard"}
 
 
 class Supervisor:
@@ -92,6 +95,11 @@ class Supervisor:
         self.retired: list[ManagedProcess] = []
         self.next_worker_index = 0
 
+    @property
+    def dashboard_url(self) -> str | None:
+        port = self.cfg.dashboard_port
+        return f"http://127.0.0.1:{port}/?run={self.cfg.run_id}" if port else None
+
     def process(self, name: str, module: str, service_cfg: object) -> ManagedProcess:
         proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log")
         self.processes[name] = proc
@@ -108,7 +116,7 @@ class Supervisor:
         for target in ("supervisor", "all"):
             self.bus.subscribe(topics.control(self.cfg.run_id, target), self._on_control)
         configs = service_configs(self.cfg, self.connect)
-        for name in ("dynamics-learner", "graph-evaluator"):
+        for name in ("dynamics-learner", "graph-evaluator") + (("dashboard",) if self.cfg.dashboard_port else ()):
             self.process(name, MODULES[name], configs[name]).start()
         for i in range(self.cfg.workers):
             self.add_worker(i)

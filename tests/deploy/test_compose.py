@@ -67,7 +67,8 @@ def test_services_share_one_image_built_from_deploy(compose: dict[str, Any]) -> 
 def test_services_are_healthchecked_restarted_and_wait_for_the_router(compose: dict[str, Any]) -> None:
     for name, service in _causeway_services(compose).items():
         health = " ".join(service["healthcheck"]["test"])
-        assert f"127.0.0.1:{METRICS_PORT}/metrics" in health, name
+        probe = "127.0.0.1:8080/healthz" if name == "dashboard" else f"127.0.0.1:{METRICS_PORT}/metrics"
+        assert probe in health, name
         assert service["restart"] == "unless-stopped", name
         condition = service["depends_on"]["router"]["condition"]
         assert condition in ("service_healthy", "service_started"), name

@@ -1,0 +1,186 @@
+"""dashboard core: per run, the latest graph report, a bounded learning curve and the services' last beats.
+
+Pure: no bus, no HTTP. Messages arrive already validated by the shell's ``Inbox``; nothing here checks
+them again. ``snapshot`` and ``runs`` produce the JSON-able documents the page renders. Every public
+method takes the state's lock, so the bus loop writes while HTTP threads read.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from causal.graph_metrics import scored_entries
+from proto.messages import GraphReport, ServiceStats
+
+ACTION_COLUMN = "action"
+CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1")
+ABSTRACTION_CLASSES = (("controllable", "Controllable"), ("action_relevant", "Action-relevant"),
+                       ("action_irrelevant", "Action-irrelevant"))
+OUTCOMES = ("tp", "fp", "fn", "tn")
+
+
+@dataclass(frozen=True)
+class CurvePoint:
+    """One report's scores on the learning curve (None where the run has no ground truth)."""
+
+    time: float
+    env_steps: int
+    updates: int
+    f1: float | None
+    accuracy: float | None
+    precision: float | None
+    recall: float | None
+    roc_auc: float | None
+    best_threshold_f1: float | None
+
+    @classmethod
+    def of(cls, report: GraphReport, time: float) -> CurvePoint:
+        scores = {name: _short(report.metrics[name]) if name in report.metrics else None for name in CURVE_METRICS}
+        return cls(time=time, env_steps=report.env_steps, updates=report.updates, **scores)
+
+
+@dataclass
+class ServiceBeat:
+    """The newest stats beat of one service instance, and when it arrived here."""
+
+    stats: ServiceStats
+    last_seen: float
+
+
+@dataclass
+class RunState:
+    """What the dashboard knows about one run."""
+
+    run: str
+    report: GraphReport | None = None
+    received_at: float = 0.0
+    curve: list[CurvePoint] = field(default_factory=list)
+    services: dict[tuple[str, str], ServiceBeat] = field(default_factory=dict)
+    last_seen: float = 0.0
+
+
+class DashboardState:
+    """The latest graph, learning curve and service beats of up to ``max_runs`` runs."""
+
+    def __init__(self, history_points: int = 1_000, max_runs: int = 64, max_services: int = 256,
+                 stale_after_s: float = 10.0) -> None:
+        if history_points < 2 or max_runs < 1 or max_services < 1:
+            raise ValueError("history_points >= 2, max_runs >= 1 and max_services >= 1 are required")
+        self.history_points, self.max_runs, self.max_services = history_points, max_runs, max_services
+        self.stale_after_s = stale_after_s
+        self._runs: dict[str, RunState] = {}
+        self._lock = threading.RLock()
+
+    def add_report(self, run: str, report: GraphReport, now: float) -> bool:
+        """Keep ``report`` if it is newer than the run's latest; False for a duplicate or a stale one."""
+        with self._lock:
+            state = self._run(run, now)
+            if state.report is not None and _order(report) <= _order(state.report):
+                return False
+            state.report, state.received_at = report, now
+            if len(state.curve) >= self.history_points:
+                state.curve = state.curve[::2]  # thin evenly so the curve still spans the whole run
+            state.curve.append(CurvePoint.of(report, report.timestamp or now))
+            return True
+
+    def add_stats(self, run: str, stats: ServiceStats, now: float) -> None:
+        """Remember the newest beat of one service instance."""
+        with self._lock:
+            services = self._run(run, now).services
+            key = (stats.service, stats.instance)
+            if key not in services and len(services) >= self.max_services:
+                del services[min(services, key=lambda k: services[k].last_seen)]
+            services[key] = ServiceBeat(stats, now)
+
+    def run_ids(self) -> list[str]:
+        with self._lock:
+            return list(self._runs)
+
+    def runs(self, now: float) -> list[dict]:
+        """The run list: runs with a graph first, most recently updated first."""
+        with self._lock:
+            states = sorted(self._runs.values(), key=lambda s: (s.report is not None, s.received_at, s.last_seen),
+                            reverse=True)
+            return [_run_summary(s, now) for s in states]
+
+    def snapshot(self, run: str, now: float) -> dict | None:
+        """Everything the page shows for ``run``; None for an unknown run."""
+        with self._lock:
+            state = self._runs.get(run)
+            if state is None:
+                return None
+            graph = graph_document(state.report, state.received_at) if state.report is not None else None
+            return {"run": run, "server_time": now, "graph": graph,
+                    "history": [asdict(p) for p in state.curve], "services": self._services(state, now)}
+
+    def services(self, run: str, now: float) -> list[dict] | None:
+        """The service beats of ``run``, or None for an unknown run."""
+        with self._lock:
+            state = self._runs.get(run)
+            return None if state is None else self._services(state, now)
+
+    def _services(self, state: RunState, now: float) -> list[dict]:
+        return [{"service": s, "instance": i, "values": beat.stats.values, "timestamp": beat.stats.timestamp,
+                 "last_seen": beat.last_seen, "age_s": max(now - beat.last_seen, 0.0),
+                 "stale": now - beat.last_seen > self.stale_after_s}
+                for (s, i), beat in sorted(state.services.items())]
+
+    def _run(self, run: str, now: float) -> RunState:
+        state = self._runs.get(run)
+        if state is None:
+            if len(self._runs) >= self.max_runs:
+                del self._runs[min(self._runs, key=lambda r: self._runs[r].last_seen)]
+            state = self._runs[run] = RunState(run)
+        state.last_seen = now
+        return state
+
+
+def _order(report: GraphReport) -> tuple[float, int]:
+    return report.timestamp, report.weights_version
+
+
+def _run_summary(state: RunState, now: float) -> dict:
+    report = state.report
+    return {"run": state.run, "has_graph": report is not None,
+            "kind": report.kind if report else None,
+            "weights_version": report.weights_version if report else None,
+            "env_steps": report.env_steps if report else None,
+            "f1": report.metrics.get("f1") if report else None,
+            "updated_at": state.received_at or None, "last_seen": state.last_seen,
+            "services": len(state.services)}
+
+
+def graph_document(report: GraphReport, received_at: float) -> dict:
+    """A report as the page draws it: cells (CMI, learned, true, TP/FP/FN/TN), classes, scores."""
+    names = list(report.factor_names)
+    outcome = classify(report.adjacency, report.true_graph)
+    truth = report.true_graph
+    cells = [[{"cmi": _short(report.cmi[i, j]), "learned": bool(report.adjacency[i, j]),
+               "truth": None if truth is None else bool(truth[i, j]), "outcome": outcome[i][j]}
+              for j in range(report.cmi.shape[1])] for i in range(report.cmi.shape[0])]
+    counts = None if truth is None else {o: sum(row.count(o) for row in outcome) for o in OUTCOMES}
+    classes = [{"key": key, "label": label, "factors": [{"index": i, "name": names[i]} for i in getattr(report, key)]}
+               for key, label in ABSTRACTION_CLASSES]
+    return {"kind": report.kind, "weights_version": report.weights_version, "env_steps": report.env_steps,
+            "updates": report.updates, "num_heldout": report.num_heldout, "timestamp": report.timestamp,
+            "received_at": received_at, "threshold": report.threshold, "factor_names": names,
+            "cause_names": names + [ACTION_COLUMN], "metrics": dict(report.metrics),
+            "cmi_max": _short(report.cmi.max()), "confusion": counts, "cells": cells, "classes": classes}
+
+
+def classify(learned: np.ndarray, truth: np.ndarray | None) -> list[list[str | None]]:
+    """Per cell: "tp", "fp", "fn", "tn"; "self" on the diagonal (never scored); None without a truth."""
+    rows, cols = learned.shape
+    if truth is None:
+        return [["self" if i == j else None for j in range(cols)] for i in range(rows)]
+    scored = scored_entries(learned.shape)
+    p, t = learned.astype(bool), truth.astype(bool)
+    names = np.where(p, np.where(t, "tp", "fp"), np.where(t, "fn", "tn"))
+    return [[str(names[i, j]) if scored[i, j] else "self" for j in range(cols)] for i in range(rows)]
+
+
+def _short(value: float) -> float:
+    """Five significant digits: enough for a tooltip, a third of the JSON."""
+    return float(f"{float(value):.5g}")

@@ -1,0 +1,201 @@
+// Causeway live causal-graph page. No framework, no network beyond this server: one EventSource on
+// /events?run=<run> delivers "runs", "snapshot" and "services" events; everything is drawn in SVG.
+
+import { renderChart, renderChartLegend } from './chart.js';
+import { $, debounce, fmt, html } from './dom.js';
+import { GraphViews } from './heatmap.js';
+
+const LARGE_GRAPH_COLUMNS = 16; // beyond this, two heat maps per row (see .board.large)
+const SERVICE_VALUES = ['env_steps', 'updates', 'evaluated_version', 'heldout', 'episodes', 'runs', 'sse_clients'];
+const STATUS_TEXT = { live: 'live', connecting: 'connecting…', reconnecting: 'reconnecting…', offline: 'offline' };
+
+const params = new URLSearchParams(window.location.search);
+const view = {
+  run: params.get('run'), userPicked: params.has('run'), source: null, retry: null,
+  graph: null, history: [], services: [], servicesAt: Date.now(), clockOffsetMs: 0,
+};
+const graphViews = new GraphViews($('legend-learned'));
+const serverNow = () => (Date.now() + view.clockOffsetMs) / 1000;
+
+function setText(id, text) { $(id).textContent = text; }
+
+function renderKpis(graph, previous) {
+  const m = graph.metrics;
+  setText('f1', fmt.ratio(m.f1));
+  setText('accuracy', fmt.ratio(m.accuracy));
+  setText('precision', fmt.ratio(m.precision));
+  setText('recall', fmt.ratio(m.recall));
+  setText('roc-auc', fmt.ratio(m.roc_auc));
+  setText('best-f1', fmt.ratio(m.best_threshold_f1));
+  setText('best-threshold', m.best_threshold == null ? '' : `at ε = ${fmt.cmi(m.best_threshold)}`);
+  setText('env-steps', fmt.int(graph.env_steps));
+  setText('updates', fmt.int(graph.updates));
+  setText('weights-version', String(graph.weights_version));
+  setText('last-update', fmt.clock(graph.received_at));
+  const delta = $('f1-delta');
+  if (previous && previous.weights_version !== graph.weights_version && m.f1 != null && previous.metrics.f1 != null) {
+    const d = m.f1 - previous.metrics.f1;
+    delta.textContent = `${d >= 0 ? '▲' : '▼'} ${Math.abs(d).toFixed(3)} vs v${previous.weights_version}`;
+    delta.className = `kpi-note ${d > 0 ? 'up' : d < 0 ? 'down' : ''}`;
+    const kpis = document.querySelector('.kpis');
+    kpis.classList.remove('flash');
+    void kpis.offsetWidth; // restart the animation
+    kpis.classList.add('flash');
+  } else if (!previous) {
+    delta.textContent = '';
+  }
+  ['tp', 'fp', 'fn', 'tn'].forEach((o) => setText(`count-${o}`, graph.confusion ? String(graph.confusion[o]) : ''));
+}
+
+function renderClasses(graph) {
+  $('classes').replaceChildren(...graph.classes.map((cls) => {
+    const chips = cls.factors.map((f) => {
+      const chip = html('span', { className: 'chip', text: f.name, data: { index: f.index } });
+      chip.addEventListener('mouseenter', () => graphViews.highlightFactor(f.index));
+      chip.addEventListener('mouseleave', () => graphViews.highlightFactor(null));
+      return chip;
+    });
+    return html('div', { className: `class-block class-${cls.key}`, data: { class: cls.key } }, [
+      html('div', { className: 'class-head' }, [
+        html('span', { className: 'class-dot' }), html('span', { text: cls.label }),
+        html('span', { className: 'count', text: `${cls.factors.length}` }),
+      ]),
+      html('div', { className: 'chips' }, chips.length ? chips : [html('span', { className: 'none', text: 'none' })]),
+    ]);
+  }));
+}
+
+function renderServices() {
+  const elapsed = (Date.now() - view.servicesAt) / 1000;
+  const items = view.services.map((s) => {
+    const shown = SERVICE_VALUES.filter((k) => k in s.values).slice(0, 2)
+      .map((k) => `${k.replace(/_/g, ' ')} ${fmt.compact(s.values[k])}`).join(' · ');
+    const age = s.age_s + elapsed;
+    return html('li', { className: s.stale || age > 10 ? 'stale' : '' }, [
+      html('span', { className: 'svc-dot' }),
+      html('div', {}, [html('div', { className: 'svc-name', text: `${s.service}/${s.instance}` }),
+        html('div', { className: 'svc-values', text: shown })]),
+      html('span', { className: 'svc-age', text: fmt.age(age) }),
+    ]);
+  });
+  $('services').replaceChildren(...(items.length ? items : [html('li', { className: 'empty', text: 'no beats yet' })]));
+}
+
+function renderGraph(graph) {
+  const previous = view.graph;
+  view.graph = graph;
+  $('waiting').hidden = true;
+  setText('kind', graph.kind);
+  $('kind').hidden = false;
+  setText('learned-sub', `CMI per edge, nats · ${fmt.int(graph.num_heldout)} held-out transitions`);
+  $('board').classList.toggle('large', graph.cause_names.length > LARGE_GRAPH_COLUMNS);
+  graphViews.render(graph);
+  renderKpis(graph, previous);
+  renderClasses(graph);
+  document.body.dataset.weightsVersion = String(graph.weights_version);
+}
+
+function renderWaiting() {
+  view.graph = null;
+  $('waiting').hidden = false;
+  $('waiting').textContent = view.run ? `Waiting for the first graph report of run “${view.run}”…`
+    : 'Waiting for a run to report on the bus…';
+}
+
+function renderAge() {
+  if (view.graph) setText('last-update-age', fmt.age(serverNow() - view.graph.received_at));
+  renderServices();
+}
+
+// ------------------------------------------------------------------ event stream
+
+function setStatus(state) {
+  $('status').dataset.state = state === 'reconnecting' ? 'connecting' : state;
+  setText('status-text', STATUS_TEXT[state]);
+}
+
+function onRuns(runs) {
+  const select = $('run');
+  const known = runs.some((r) => r.run === view.run);
+  const options = runs.map((r) => {
+    const note = r.has_graph ? ` — F1 ${fmt.ratio(r.f1)} · v${r.weights_version}` : ' — no graph yet';
+    const option = html('option', { text: `${r.run}${note}` });
+    option.value = r.run;
+    return option;
+  });
+  if (view.run && !known) {
+    const option = html('option', { text: `${view.run} — not seen yet` });
+    option.value = view.run;
+    options.unshift(option);
+  }
+  select.replaceChildren(...options);
+  if (view.run) select.value = view.run;
+  const best = runs[0];
+  if (!view.userPicked && best && best.run !== view.run && (view.run == null || (!view.graph && best.has_graph))) {
+    selectRun(best.run, false);
+  }
+}
+
+function onSnapshot(snapshot) {
+  if (snapshot.run !== view.run) return;
+  view.clockOffsetMs = snapshot.server_time * 1000 - Date.now();
+  view.history = snapshot.history;
+  onServices(snapshot);
+  if (snapshot.graph) renderGraph(snapshot.graph);
+  else renderWaiting();
+  renderChart($('chart'), view.history);
+  renderAge();
+}
+
+function onServices(message) {
+  if (message.run !== view.run) return;
+  view.services = message.services;
+  view.servicesAt = Date.now();
+  renderServices();
+}
+
+function connect() {
+  if (view.source) view.source.close();
+  clearTimeout(view.retry);
+  const source = new EventSource(view.run ? `/events?run=${encodeURIComponent(view.run)}` : '/events');
+  view.source = source;
+  setStatus('connecting');
+  source.onopen = () => setStatus('live');
+  source.onerror = () => {
+    if (source !== view.source) return;
+    if (source.readyState === EventSource.CLOSED) { // refused (e.g. 503: too many streams): retry later
+      setStatus('offline');
+      view.retry = setTimeout(connect, 5000);
+    } else {
+      setStatus('reconnecting');
+    }
+  };
+  const on = (name, handler) => source.addEventListener(name, (e) => handler(JSON.parse(e.data)));
+  on('runs', onRuns);
+  on('snapshot', onSnapshot);
+  on('services', onServices);
+}
+
+function selectRun(run, byUser) {
+  view.run = run;
+  view.userPicked = view.userPicked || byUser;
+  view.history = [];
+  view.services = [];
+  if (byUser) window.history.replaceState(null, '', `?run=${encodeURIComponent(run)}`);
+  renderWaiting();
+  renderChart($('chart'), view.history);
+  renderServices();
+  connect();
+}
+
+$('run').addEventListener('change', (e) => selectRun(e.target.value, true));
+window.addEventListener('resize', debounce(() => {
+  if (view.graph) graphViews.render(view.graph);
+  renderChart($('chart'), view.history);
+}, 150));
+renderChartLegend($('chart-legend'));
+renderWaiting();
+renderChart($('chart'), view.history);
+renderServices();
+setInterval(renderAge, 1000);
+connect();

@@ -1,0 +1,81 @@
+// The learning curve: scores against env steps, one SVG line per score, values on hover.
+
+import { fmt, html, svg, tooltip } from './dom.js';
+
+const SERIES = [
+  { key: 'f1', label: 'F1' },
+  { key: 'best_threshold_f1', label: 'best-threshold F1', dashed: true },
+  { key: 'accuracy', label: 'accuracy' },
+  { key: 'roc_auc', label: 'ROC AUC' },
+];
+
+function niceTicks(lo, hi, count) {
+  const raw = (hi - lo) / Math.max(count, 1);
+  const magnitude = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 2.5, 5, 10].map((m) => m * magnitude).find((s) => s >= raw) || raw;
+  const ticks = [];
+  for (let v = Math.ceil(lo / step) * step; v <= hi + step * 1e-9; v += step) ticks.push(v);
+  return ticks;
+}
+
+export function renderChart(chart, points) {
+  chart.replaceChildren();
+  const width = chart.parentElement.clientWidth;
+  const height = 250;
+  const m = { l: 40, r: 16, t: 10, b: 34 };
+  chart.setAttribute('width', width);
+  chart.setAttribute('height', height);
+  const X0 = 0;
+  const X1 = Math.max(1, ...points.map((p) => p.env_steps));
+  const x = (v) => m.l + ((v - X0) / (X1 - X0)) * (width - m.l - m.r);
+  const y = (v) => m.t + (1 - v) * (height - m.t - m.b);
+  const axis = svg('g', { class: 'axis' }, chart);
+  [0, 0.25, 0.5, 0.75, 1].forEach((v) => {
+    svg('line', { class: 'grid', x1: m.l, x2: width - m.r, y1: y(v), y2: y(v) }, axis);
+    svg('text', { x: m.l - 8, y: y(v), 'text-anchor': 'end', 'dominant-baseline': 'central' }, axis, v.toFixed(2));
+  });
+  niceTicks(X0, X1, Math.max(2, Math.floor(width / 110))).forEach((v) => {
+    svg('text', { x: x(v), y: height - m.b + 16, 'text-anchor': 'middle' }, axis, fmt.compact(v));
+  });
+  svg('text', { x: width - m.r, y: height - 2, 'text-anchor': 'end' }, axis, 'env steps');
+  if (!points.length) {
+    svg('text', { class: 'empty-note', x: width / 2, y: height / 2, 'text-anchor': 'middle' }, chart, 'no scores yet');
+    return;
+  }
+  SERIES.forEach(({ key, dashed }) => {
+    let d = '';
+    let pen = 'M';
+    let last = null;
+    points.forEach((p) => {
+      if (p[key] == null) { pen = 'M'; return; }
+      d += `${pen}${x(p.env_steps).toFixed(1)},${y(p[key]).toFixed(1)}`;
+      pen = 'L';
+      last = p;
+    });
+    if (!last) return;
+    svg('path', { class: `series series-${key}${dashed ? ' dashed' : ''}`, d }, chart);
+    svg('circle', { class: `end-dot series-${key}`, cx: x(last.env_steps), cy: y(last[key]), r: 3.5 }, chart);
+  });
+  const crosshair = svg('line', { class: 'crosshair', y1: m.t, y2: height - m.b, visibility: 'hidden' }, chart);
+  const overlay = svg('rect', {
+    class: 'overlay', x: m.l, y: m.t, width: width - m.l - m.r, height: height - m.t - m.b,
+  }, chart);
+  overlay.addEventListener('mousemove', (e) => {
+    const steps = X0 + ((e.offsetX - m.l) / (width - m.l - m.r)) * (X1 - X0);
+    const p = points.reduce((best, q) => (Math.abs(q.env_steps - steps) < Math.abs(best.env_steps - steps) ? q : best));
+    crosshair.setAttribute('x1', x(p.env_steps));
+    crosshair.setAttribute('x2', x(p.env_steps));
+    crosshair.setAttribute('visibility', 'visible');
+    tooltip.show(`${fmt.int(p.env_steps)} env steps`, [
+      ...SERIES.map(({ key, label }) => [label, fmt.ratio(p[key])]),
+      ['updates', fmt.int(p.updates)],
+    ], null, e.clientX, e.clientY);
+  });
+  overlay.addEventListener('mouseleave', () => { crosshair.setAttribute('visibility', 'hidden'); tooltip.hide(); });
+}
+
+export function renderChartLegend(container) {
+  container.replaceChildren(...SERIES.map(({ key, label, dashed }) => html('span', { className: 'key' }, [
+    html('span', { className: `swatch-line series-${key}${dashed ? ' dashed' : ''}` }), document.createTextNode(label),
+  ])));
+}

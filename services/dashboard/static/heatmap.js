@@ -1,0 +1,183 @@
+// The three heat maps (learned CMI, ground truth, comparison) with linked hover, and the CMI colour bar.
+
+import { $, fmt, html, svg, tooltip } from './dom.js';
+
+const BLUES = [[247, 251, 255], [198, 219, 239], [107, 174, 214], [33, 113, 181], [8, 48, 107]];
+
+// CMI on a log scale: a decade below the threshold is the lightest blue.
+function cmiDomain(graph) {
+  const lo = Math.max(graph.threshold, 1e-4) / 10;
+  return [lo, Math.max(graph.cmi_max, graph.threshold * 10, lo * 100)];
+}
+
+function cmiPosition(value, [lo, hi]) {
+  const t = (Math.log(Math.max(value, lo)) - Math.log(lo)) / (Math.log(hi) - Math.log(lo));
+  return Math.min(1, Math.max(0, t));
+}
+
+function blue(t) {
+  const x = t * (BLUES.length - 1);
+  const i = Math.min(Math.floor(x), BLUES.length - 2);
+  const f = x - i;
+  const rgb = BLUES[i].map((c, k) => Math.round(c + (BLUES[i + 1][k] - c) * f));
+  return { css: `rgb(${rgb.join(',')})`, dark: 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2] < 140 };
+}
+
+class Heatmap {
+  constructor(id, mode, owner) {
+    this.svg = $(id);
+    this.mode = mode;
+    this.key = '';
+    this.svg.addEventListener('mousemove', (e) => {
+      const cell = e.target.closest('.cell');
+      if (cell) owner.hover(Number(cell.dataset.i), Number(cell.dataset.j), e);
+      else owner.clear();
+    });
+    this.svg.addEventListener('mouseleave', () => owner.clear());
+  }
+
+  render(graph) {
+    const width = this.svg.parentElement.clientWidth;
+    const key = `${width}|${graph.factor_names.join(',')}|${graph.cause_names.length}`;
+    if (key !== this.key) this.build(graph, width);
+    this.key = key;
+    this.paint(graph);
+  }
+
+  build(graph, width) {
+    this.svg.replaceChildren();
+    const rows = graph.factor_names;
+    const cols = graph.cause_names;
+    const font = cols.length > 20 ? 10 : 11;
+    this.svg.style.setProperty('--label-size', `${font}px`);
+    const rowLabels = rows.map((name) => svg('text', { 'text-anchor': 'end', 'dominant-baseline': 'central' },
+      this.svg, name));
+    const colLabels = cols.map((name) => svg('text', { 'dominant-baseline': 'central' }, this.svg, name));
+    const longest = (labels) => Math.max(...labels.map((t) => t.getComputedTextLength()));
+    const x0 = Math.ceil(longest(rowLabels)) + 8;
+    const y0 = Math.ceil(longest(colLabels)) + 8;
+    const cell = Math.max(8, Math.min(36, Math.floor((width - x0 - 2) / cols.length)));
+    this.svg.setAttribute('width', x0 + cell * cols.length + 2);
+    this.svg.setAttribute('height', y0 + cell * rows.length + 2);
+    rowLabels.forEach((t, i) => { t.setAttribute('x', x0 - 6); t.setAttribute('y', y0 + (i + 0.5) * cell); });
+    colLabels.forEach((t, j) => {
+      t.setAttribute('transform', `translate(${x0 + (j + 0.5) * cell},${y0 - 6}) rotate(-90)`);
+    });
+    const group = svg('g', {}, this.svg);
+    this.cells = rows.map((_, i) => cols.map((__, j) => svg('rect', {
+      class: 'cell', x: x0 + j * cell + 0.5, y: y0 + i * cell + 0.5, width: cell - 1, height: cell - 1,
+      rx: Math.min(2, cell / 6), 'data-i': i, 'data-j': j,
+    }, group)));
+    if (this.mode === 'learned') {
+      this.dots = rows.map((_, i) => cols.map((__, j) => svg('circle', {
+        class: 'cell-dot', cx: x0 + (j + 0.5) * cell, cy: y0 + (i + 0.5) * cell, r: Math.max(1.5, cell * 0.14),
+      }, group)));
+    }
+    this.rowLabels = rowLabels;
+    this.colLabels = colLabels;
+    this.hoverBoxes = ['hover-halo', 'hover-box'].map((cls) => svg('rect', {
+      class: cls, width: cell, height: cell, rx: 2, visibility: 'hidden',
+    }, this.svg));
+    this.geometry = { x0, y0, cell };
+  }
+
+  paint(graph) {
+    const domain = cmiDomain(graph);
+    graph.cells.forEach((row, i) => row.forEach((c, j) => {
+      const rect = this.cells[i][j];
+      if (this.mode === 'learned') {
+        const colour = blue(cmiPosition(c.cmi, domain));
+        rect.setAttribute('fill', colour.css);
+        const dot = this.dots[i][j];
+        dot.setAttribute('visibility', c.learned ? 'visible' : 'hidden');
+        dot.setAttribute('fill', colour.dark ? '#ffffff' : '#0f172a');
+      } else if (this.mode === 'truth') {
+        rect.setAttribute('class', `cell ${c.truth == null ? 'outcome-none' : c.truth ? 'truth-edge' : 'truth-none'}`);
+      } else {
+        rect.setAttribute('class', `cell outcome-${c.outcome || 'none'}`);
+      }
+    }));
+  }
+
+  highlight(i, j) {
+    if (!this.geometry) return;
+    const { x0, y0, cell } = this.geometry;
+    this.rowLabels.forEach((t, k) => t.classList.toggle('active', k === i));
+    this.colLabels.forEach((t, k) => t.classList.toggle('active', k === j));
+    this.hoverBoxes.forEach((box) => {
+      if (i == null || j == null) {
+        box.setAttribute('visibility', 'hidden');
+        return;
+      }
+      box.setAttribute('x', x0 + j * cell);
+      box.setAttribute('y', y0 + i * cell);
+      box.setAttribute('visibility', 'visible');
+    });
+  }
+}
+
+/** The three heat maps of one graph; hovering a cell highlights it, its row and column in all three. */
+export class GraphViews {
+  constructor(legend) {
+    this.graph = null;
+    this.legend = legend;
+    this.maps = [['heatmap-learned', 'learned'], ['heatmap-truth', 'truth'], ['heatmap-compare', 'compare']]
+      .map(([id, mode]) => new Heatmap(id, mode, this));
+  }
+
+  render(graph) {
+    this.graph = graph;
+    this.maps.forEach((m) => m.render(graph));
+    renderColorbar(graph, this.legend);
+  }
+
+  hover(i, j, event) {
+    const graph = this.graph;
+    if (!graph) return;
+    const c = graph.cells[i][j];
+    this.maps.forEach((m) => m.highlight(i, j));
+    const yesNo = (v) => (v == null ? 'unknown' : v ? 'edge' : 'no edge');
+    tooltip.show(`${graph.cause_names[j]} → ${graph.factor_names[i]}`, [
+      ['cause (t)', graph.cause_names[j]],
+      ['effect (t+1)', graph.factor_names[i]],
+      ['CMI', `${fmt.cmi(c.cmi)} nats`],
+      ['threshold ε', `${fmt.cmi(graph.threshold)} nats`],
+      ['learned', yesNo(c.learned)],
+      ['truth', yesNo(c.truth)],
+    ], c.outcome, event.clientX, event.clientY);
+  }
+
+  clear() {
+    this.maps.forEach((m) => m.highlight(null, null));
+    tooltip.hide();
+  }
+
+  /** Emphasise one factor's row and column labels (hovering its abstraction chip); null clears. */
+  highlightFactor(index) {
+    this.maps.forEach((m) => {
+      if (!m.rowLabels) return;
+      m.rowLabels.forEach((t, k) => t.classList.toggle('active', k === index));
+      m.colLabels.forEach((t, k) => t.classList.toggle('active', k === index));
+    });
+  }
+}
+
+function renderColorbar(graph, container) {
+  const domain = cmiDomain(graph);
+  const width = 220;
+  const bar = svg('svg', { class: 'colorbar', width: width + 8, height: 44 });
+  const gradient = svg('linearGradient', { id: 'cmi-gradient' }, svg('defs', {}, bar));
+  BLUES.forEach((_, k) => svg('stop', {
+    offset: `${(100 * k) / (BLUES.length - 1)}%`, 'stop-color': blue(k / (BLUES.length - 1)).css,
+  }, gradient));
+  svg('rect', { x: 4, y: 14, width, height: 10, rx: 2, fill: 'url(#cmi-gradient)', stroke: '#e2e7ee' }, bar);
+  const at = (value) => 4 + cmiPosition(value, domain) * width;
+  svg('text', { x: 4, y: 38 }, bar, `≤ ${fmt.cmi(domain[0])}`);
+  svg('text', { x: 4 + width, y: 38, 'text-anchor': 'end' }, bar, `${fmt.cmi(domain[1])} nats`);
+  svg('line', { class: 'threshold', x1: at(graph.threshold), x2: at(graph.threshold), y1: 11, y2: 27 }, bar);
+  svg('text', { x: at(graph.threshold), y: 8, 'text-anchor': 'middle' }, bar, `ε = ${fmt.cmi(graph.threshold)}`);
+  const dot = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
+  svg('circle', { cx: 6, cy: 6, r: 3, fill: '#0f172a' }, dot.firstChild);
+  dot.append('learned edge (CMI ≥ ε)');
+  container.replaceChildren(bar, dot);
+}

@@ -1,0 +1,60 @@
+"""GraphReports built for the dashboard tests: a Chemical-like factor set, a true graph, a noisy learned one."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from causal.abstraction import cdl_abstraction
+from causal.graph_metrics import score_graph, scored_entries
+from proto.messages import GraphReport, ServiceStats
+
+THRESHOLD = 0.02
+
+
+def factor_names(num_objects: int) -> tuple[str, ...]:
+    return tuple(f"obj{k}.{part}" for k in range(num_objects) for part in ("color", "x", "y"))
+
+
+def true_graph(num_objects: int) -> np.ndarray:
+    """The action sets colours; each colour depends on the previous object's colour and, for even objects, on x."""
+    n = 3 * num_objects
+    truth = np.eye(n, n + 1, dtype=np.uint8)
+    for k in range(num_objects):
+        truth[3 * k, n] = 1
+        if k:
+            truth[3 * k, 3 * (k - 1)] = 1
+        if k % 2 == 0:
+            truth[3 * k, 3 * k + 1] = 1
+    return truth
+
+
+def make_report(num_objects: int = 3, version: int = 1, errors: int = 2, seed: int = 0, kind: str = "cdl",
+                with_truth: bool = True) -> GraphReport:
+    """A report whose learned graph gets ``errors`` scored cells wrong (alternately FP and FN)."""
+    rng = np.random.default_rng(seed)
+    truth = true_graph(num_objects)
+    n = truth.shape[0]
+    cmi = np.where(truth == 1, rng.uniform(0.05, 0.8, truth.shape), rng.uniform(1e-4, 0.008, truth.shape))
+    scored = np.argwhere(scored_entries(truth.shape))
+    positives = [tuple(c) for c in scored if truth[tuple(c)]]
+    negatives = [tuple(c) for c in scored if not truth[tuple(c)]]
+    for e in range(errors):
+        pool = negatives if e % 2 == 0 else positives
+        cell = pool[int(rng.integers(len(pool)))]
+        cmi[cell] = rng.uniform(0.03, 0.1) if e % 2 == 0 else rng.uniform(1e-3, 0.01)
+    cmi = cmi.astype(np.float32)
+    adjacency = (cmi >= THRESHOLD).astype(np.uint8)
+    adjacency[np.arange(n), np.arange(n)] = 1  # self-edges are always kept (Assumption 4)
+    abstraction = cdl_abstraction(adjacency)
+    steps = 5_000 * version
+    return GraphReport(kind=kind, weights_version=version, env_steps=steps, updates=steps // 20,
+                       factor_names=factor_names(num_objects), cmi=cmi, adjacency=adjacency, threshold=THRESHOLD,
+                       controllable=abstraction.controllable, action_relevant=abstraction.action_relevant,
+                       action_irrelevant=abstraction.action_irrelevant,
+                       metrics=score_graph(cmi, truth, THRESHOLD) if with_truth else {},
+                       true_graph=truth if with_truth else None, num_heldout=400 + n, timestamp=time.time())
+
+
+def make_stats(service: str, instance: str = "0", **values: float) -> ServiceStats:
+    return ServiceStats(service=service, instance=instance, values=dict(values), timestamp=time.time())

@@ -1,0 +1,142 @@
+"""The live page in headless Chromium: a real Zenoh router, the dashboard as a process, reports over Zenoh.
+
+Loads the page, waits for the first report to render, publishes a new one and waits for the DOM to
+change without a reload, checks the heat maps, classes, scores and the hover tooltip, and leaves a
+screenshot in test-artifacts/dashboard.png.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from proto import topics
+from proto.codec import encode
+from services.bus.router import free_tcp_port, start_router, wait_for_router
+from services.bus.zenoh_transport import ZenohTransport
+from tests.dashboard.browser import CHROMIUM, Browser
+from tests.dashboard.reports import make_report, make_stats
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+REPO = Path(__file__).resolve().parents[2]
+SCREENSHOT = REPO / "test-artifacts" / "dashboard.png"
+RUN = "chemical-demo"
+
+
+def wait_for(predicate, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if value := predicate():
+                return value
+        except OSError:
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
+
+
+def fetch_json(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=3) as reply:
+        return json.loads(reply.read())
+
+
+def text(browser: Browser, selector: str) -> str:
+    return browser.evaluate(f"document.querySelector({json.dumps(selector)}).textContent")
+
+
+@pytest.fixture
+def stack(tmp_path: Path):
+    """A router, a publisher on it, and the dashboard process; yields (publisher, latest graph, page URL)."""
+    if not CHROMIUM.exists():
+        pytest.skip(f"{CHROMIUM} missing: apt-get install --no-install-recommends chromium (make sysdeps)")
+    connect = f"tcp/127.0.0.1:{free_tcp_port()}"
+    router = start_router(connect)
+    wait_for_router(connect)
+    http_port = free_tcp_port()
+    env = {**os.environ, "CAUSEWAY_RUN_ID": RUN, "CAUSEWAY_ZENOH_CONNECT": connect, "CAUSEWAY_HTTP_HOST": "127.0.0.1",
+           "CAUSEWAY_HTTP_PORT": str(http_port), "CAUSEWAY_RUN_DIR": str(tmp_path / "run"), "PYTHONUNBUFFERED": "1"}
+    log = open(tmp_path / "dashboard.log", "wb")
+    process = subprocess.Popen([sys.executable, "-m", "services.dashboard"], cwd=REPO, env=env, stdout=log,
+                               stderr=subprocess.STDOUT)
+    publisher = ZenohTransport(connect)
+    latest = publisher.serve_latest(topics.graph(RUN, "cdl"))
+    base = f"http://127.0.0.1:{http_port}"
+    try:
+        wait_for(lambda: fetch_json(f"{base}/healthz")["status"] == "ok", 20, "the dashboard's /healthz")
+        yield publisher, latest, base
+    finally:
+        latest.close()
+        publisher.close()
+        process.send_signal(signal.SIGTERM)
+        try:
+            code = process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            code = process.wait()
+        log.close()
+        router.close()
+        assert code == 0, (tmp_path / "dashboard.log").read_text()
+
+
+def publish_history(publisher: ZenohTransport, latest, base: str, versions: range) -> None:
+    """Reports the dashboard sees arrive one after the other (a learning curve), ending at ``versions[-1]``."""
+    for v in versions:
+        latest.set(encode(make_report(3, version=v, errors=max(1, 9 - v), seed=v)))
+        time.sleep(0.03)
+    for service, instance, values in (("env-worker", "0", {"env_steps": 30_000.0, "episodes": 600.0}),
+                                      ("env-worker", "1", {"env_steps": 29_500.0, "episodes": 590.0}),
+                                      ("dynamics-learner", "0", {"updates": 1_500.0, "env_steps": 30_000.0}),
+                                      ("graph-evaluator", "0", {"evaluated_version": float(versions[-1])})):
+        publisher.publish(topics.stats(RUN, service, instance), encode(make_stats(service, instance, **values)))
+    wait_for(lambda: fetch_json(f"{base}/api/runs/{RUN}")["graph"]["weights_version"] == versions[-1], 10,
+             f"report v{versions[-1]} at the dashboard")
+
+
+def test_live_page_renders_updates_without_reload_and_explains_cells(stack) -> None:
+    publisher, latest, base = stack
+    latest.set(encode(make_report(3, version=1, errors=8, seed=1)))
+    wait_for(lambda: fetch_json(f"{base}/api/runs/{RUN}")["graph"], 10, "the first report")
+    publish_history(publisher, latest, base, range(2, 7))
+    with Browser(width=1440, height=1000) as browser:
+        browser.navigate(f"{base}/?run={RUN}")
+        browser.wait_for("document.getElementById('status').dataset.state === 'live'"
+                         " && document.getElementById('weights-version').textContent === '6'", 10, "the first render")
+        for heatmap in ("learned", "truth", "compare"):
+            assert browser.evaluate(f"document.querySelectorAll('#heatmap-{heatmap} rect.cell').length") == 9 * 10
+        browser.evaluate("window.loadedOnce = true")
+
+        second = make_report(3, version=7, errors=0, seed=7)
+        assert f"{second.metrics['f1']:.3f}" != text(browser, "#f1")
+        latest.set(encode(second))
+        browser.wait_for("document.getElementById('weights-version').textContent === '7'", 10, "the live update")
+        assert browser.evaluate("window.loadedOnce === true"), "the page reloaded instead of updating live"
+        assert text(browser, "#f1") == f"{second.metrics['f1']:.3f}"
+        assert text(browser, "#env-steps") == f"{second.env_steps:,}"
+        assert text(browser, "#status-text") == "live"
+        chips = browser.evaluate("Object.fromEntries([...document.querySelectorAll('#classes .class-block')].map("
+                                 "b => [b.dataset.class, [...b.querySelectorAll('.chip')].map(c => c.textContent)]))")
+        for cls in ("controllable", "action_relevant", "action_irrelevant"):
+            assert chips[cls] == [second.factor_names[i] for i in getattr(second, cls)]
+        assert len(chips["controllable"]) == 3  # the three colours, set by the action
+        outcomes = browser.evaluate("[...document.querySelectorAll('#heatmap-compare rect.cell')]"
+                                    ".filter(r => r.classList.contains('outcome-tp')).length")
+        assert outcomes == int(second.true_graph.sum()) - 9  # every true edge found, self-edges apart
+
+        browser.fit_to_content()
+        browser.hover("#heatmap-learned rect.cell[data-i='3'][data-j='0']")  # obj0.color -> obj1.color
+        tip = browser.wait_for("!document.getElementById('tooltip').hidden"
+                               " && document.getElementById('tooltip').innerText", 5, "the tooltip")
+        assert "obj0.color → obj1.color" in tip and "true positive" in tip
+        shown = float(re.search(r"CMI\s+([-0-9.e]+) nats", tip).group(1))
+        assert shown == pytest.approx(float(second.cmi[3, 0]), rel=5e-3)
+        browser.screenshot(SCREENSHOT)
+        assert browser.exceptions == []
+    assert SCREENSHOT.stat().st_size > 30_000
