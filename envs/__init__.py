@@ -17,7 +17,13 @@ def _chemical(**kwargs: Any) -> gym.Env:
     return ChemicalEnv(**kwargs)
 
 
-ENV_FACTORIES: dict[str, Callable[..., gym.Env]] = {"chemical": _chemical}
+def _chemical_match(**kwargs: Any) -> gym.Env:
+    from envs.chemical_match import ChemicalMatchEnv
+
+    return ChemicalMatchEnv(**kwargs)
+
+
+ENV_FACTORIES: dict[str, Callable[..., gym.Env]] = {"chemical": _chemical, "chemical-match": _chemical_match}
 
 
 def make_env(name: str, **kwargs: Any) -> gym.Env:
