@@ -23,7 +23,14 @@ def _chemical_match(**kwargs: Any) -> gym.Env:
     return ChemicalMatchEnv(**kwargs)
 
 
-ENV_FACTORIES: dict[str, Callable[..., gym.Env]] = {"chemical": _chemical, "chemical-match": _chemical_match}
+def _manipulation(**kwargs: Any) -> gym.Env:
+    from envs.manipulation import ManipulationEnv
+
+    return ManipulationEnv(**kwargs)
+
+
+ENV_FACTORIES: dict[str, Callable[..., gym.Env]] = {
+    "chemical": _chemical, "chemical-match": _chemical_match, "manipulation": _manipulation}
 
 
 def make_env(name: str, **kwargs: Any) -> gym.Env:

@@ -1,0 +1,256 @@
+"""The manipulation environment of CDL (dissertation chapter 3.3.1) on robosuite 1.5.
+
+A UR5e arm with a parallel gripper at a table with a movable cube ``mov``, a cube ``unm`` fixed to
+the table, a cube ``rand`` that moves by a random walk and that nothing else can move, and three
+random-walking markers that nothing can touch. Cubes and markers start at random places on the
+table every episode. The state is 23 one-dimensional factors, the action a 4-D end-effector
+displacement and gripper opening at 10 Hz; episodes last 250 steps. The ground truth is derived and
+justified in :mod:`envs.manipulation_truth`; the robosuite scene lives in :mod:`envs.manipulation_scene`.
+
+The chapter ran a custom robosuite 1.3 fork that does not run on 1.5; this is a re-implementation of
+the scene it describes, not a port of its code.
+"""
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from envs import manipulation_layout as layout
+from envs.manipulation_layout import (
+    FIXED_HALF, MARKERS, MOV_HALF, REGION_HIGH, REGION_LOW, TABLE_TOP, WORKSPACE_HIGH, WORKSPACE_LOW,
+)
+from envs.manipulation_scene import CausalTableScene
+from envs.manipulation_truth import global_graph, local_graph
+from proto.messages import EnvSpec
+
+ROBOTS = ("UR5e", "Panda")
+"""Arms the scene is built for (both carry the same parallel gripper); UR5e is the chapter's."""
+POSITION_BOUND = 10.0
+"""Observation-space bound on every factor, far outside the scene (a dropped cube lies on the floor)."""
+MIN_CUBE_SEPARATION = 0.09
+"""Minimum distance between cube centres at reset, so that no episode starts with cubes touching."""
+_KINEMATIC = ("unm", "rand", *MARKERS)
+"""The mocap bodies, in the scene's order."""
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+_UPRIGHT = np.array([1.0, 0.0, 0.0, 0.0])
+"""Cubes start axis-aligned: orientation is not part of the state, so a random yaw would be a hidden
+variable of every contact (and a parallel gripper that cannot turn cannot hold a cube by its edges)."""
+
+
+@dataclass(frozen=True)
+class ManipulationSnapshot:
+    """Everything that decides the rest of an episode: the simulator's full integration state, the
+    environment's random generator (it drives the random walks) and the step count."""
+
+    physics: np.ndarray
+    rng_state: dict[str, Any]
+    steps: int
+
+
+class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
+    """The manipulation scene as a factored gymnasium environment.
+
+    Observation: float32 ``[23]`` in the order of :attr:`factor_names` (``eef.x .. eef.z``,
+    ``grp.0``, ``grp.1``, then ``x, y, z`` of ``mov``, ``unm``, ``rand``, ``mk1``-``mk3``), in world
+    metres (the two finger joints are slides: ``grp.0`` in [0, 0.04], ``grp.1`` in
+    [-0.04, 0], open at the extremes). Action: float32 ``[4]``; ``a[:3]`` in [-1, 1] moves the
+    end-effector goal by ``max_displacement * a[:3]`` metres from where it is (clipped to the
+    workspace), ``a[3]`` in [0, 1] is how far the gripper is opened (0 closed, 1 open). Reward 0;
+    episodes never terminate and truncate after ``episode_length`` steps.
+
+    ``info["local_graph"]`` is the uint8 ``[23, 24]`` graph of the step from the contacts the
+    simulator reported during it; :attr:`global_graph` is the one-step ground truth. ``rand`` and the
+    markers move by ``U(-random_walk_step, random_walk_step)`` per axis and step, clipped to the table
+    area. Every random choice comes from ``self.np_random``, so ``reset(seed=s)`` fixes the episode.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        *,
+        episode_length: int = 250,
+        max_displacement: float = 0.03,
+        random_walk_step: float = 0.01,
+        control_freq: int = 10,
+        robot: str = "UR5e",
+        render_mode: str | None = None,
+    ) -> None:
+        _check_config(episode_length, max_displacement, random_walk_step, control_freq, robot, render_mode)
+        self.episode_length, self.max_displacement = episode_length, max_displacement
+        self.random_walk_step, self.control_freq, self.robot = random_walk_step, control_freq, robot
+        self.render_mode = render_mode
+        self.scene = CausalTableScene(robot=robot, control_freq=control_freq)
+        self.action_space = gym.spaces.Box(
+            np.array([-1, -1, -1, 0], np.float32), np.ones(4, np.float32), dtype=np.float32
+        )
+        bound = np.full(layout.NUM_FACTORS, POSITION_BOUND, np.float32)
+        self.observation_space = gym.spaces.Box(-bound, bound, dtype=np.float32)
+        self._global_graph = global_graph()
+        self._global_graph.flags.writeable = False
+        self._steps = 0
+
+    @property
+    def global_graph(self) -> np.ndarray:
+        """uint8 ``[23, 24]`` one-step ground truth (read-only), see :mod:`envs.manipulation_truth`."""
+        return self._global_graph
+
+    @property
+    def factor_names(self) -> tuple[str, ...]:
+        return layout.FACTOR_NAMES
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """The arm at its start pose, gripper open; cubes and markers at random places on the table."""
+        super().reset(seed=seed)
+        self.scene.reset_scene()
+        cubes = self._sample_cube_xy()
+        markers = self.np_random.uniform(REGION_LOW, REGION_HIGH, size=(len(MARKERS), 2))
+        self.scene.set_mov_pose(np.r_[cubes[0], TABLE_TOP[2] + MOV_HALF], _UPRIGHT)
+        heights = np.r_[[TABLE_TOP[2] + FIXED_HALF] * 2, [TABLE_TOP[2]] * len(MARKERS)]
+        kinematic_xy = np.vstack([cubes[1:], markers])
+        self.scene.set_kinematic_pose(np.column_stack([kinematic_xy, heights]), np.tile(_UPRIGHT, (len(heights), 1)))
+        self.scene.commit_poses()
+        self._steps = 0
+        return self._observation(), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Move the arm and gripper for one control period while ``rand`` and the markers walk."""
+        a = np.clip(np.asarray(action, dtype=np.float64).reshape(4), self.action_space.low, self.action_space.high)
+        goal = np.clip(self.scene.eef_pos() + self.max_displacement * a[:3], WORKSPACE_LOW, WORKSPACE_HIGH)
+        self.scene.step_to(goal, 1.0 - 2.0 * a[3], self._walk())
+        self._steps += 1
+        info = {"local_graph": local_graph(self.scene.contacts)}
+        return self._observation(), 0.0, False, self._steps >= self.episode_length, info
+
+    # ------------------------------------------------------------------ interventions
+
+    def snapshot(self) -> ManipulationSnapshot:
+        """The current state of the episode, to :meth:`restore` later (interventions, planning)."""
+        m, d = self.scene.sim.model._model, self.scene.sim.data._data
+        physics = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, physics, _STATE)
+        return ManipulationSnapshot(physics, copy.deepcopy(self.np_random.bit_generator.state), self._steps)
+
+    def restore(self, snapshot: ManipulationSnapshot) -> np.ndarray:
+        """Return to ``snapshot`` (taken from this environment) and give its observation."""
+        mujoco.mj_setState(self.scene.sim.model._model, self.scene.sim.data._data, snapshot.physics, _STATE)
+        self.scene.commit_poses()
+        self.np_random.bit_generator.state = copy.deepcopy(snapshot.rng_state)
+        self._steps = snapshot.steps
+        return self._observation()
+
+    def intervene(self, values: Mapping[str, float]) -> np.ndarray:
+        """Set factors by name (``{"mk1.x": 0.1, "unm.y": -0.05}``) and give the new observation.
+
+        Cube and marker coordinates and ``grp.*`` can be set; ``eef.*`` cannot (it is the arm's
+        forward kinematics: move it with actions). Everything not named keeps its exact state (a
+        set ``mov`` is also put at rest). A cube set into another body is pushed out by the
+        simulator on the next step.
+        """
+        scene = self.scene
+        grp, mov, kinematic = scene.gripper_qpos(), scene.mov_pos(), scene.kinematic_pos()
+        touched = set()
+        for name, value in values.items():
+            if name not in layout.FACTOR_NAMES or name.startswith("eef."):
+                raise KeyError(f"cannot intervene on {name!r}; settable: {layout.FACTOR_NAMES[3:]}")
+            obj, dim = name.split(".")
+            target = {"grp": grp, "mov": mov}.get(obj)
+            row = target if target is not None else kinematic[_KINEMATIC.index(obj)]
+            row[layout.OBJECT_DIMS[obj].index(dim)] = value
+            touched.add(obj)
+        if "grp" in touched:
+            scene.sim.data.qpos[scene.gripper_qpos_addr] = grp
+        if "mov" in touched:
+            scene.set_mov_pose(mov, scene.mov_quat())
+        scene.set_kinematic_pose(kinematic)
+        scene.commit_poses()
+        return self._observation()
+
+    # ------------------------------------------------------------------ spec
+
+    def env_spec(self) -> EnvSpec:
+        """The factor layout, action space, ground truth and configuration, as the bus carries it.
+        Normalisation: positions about a point 5 cm above the table's centre, 0.1 m per unit;
+        finger joints about mid-range, 0.02 m per unit (so each spans [-1, 1])."""
+        n = layout.NUM_FACTORS
+        locs, scales = _normalisation()
+        return EnvSpec(
+            env_id="manipulation",
+            factor_names=layout.FACTOR_NAMES,
+            factor_kinds=("continuous",) * n,
+            factor_sizes=(1,) * n,
+            factor_objects=layout.FACTOR_OBJECTS,
+            factor_locs=locs,
+            factor_scales=scales,
+            action_kind="continuous",
+            action_size=4,
+            episode_length=self.episode_length,
+            global_graph=self._global_graph.copy(),
+            config_json=json.dumps(self.config()),
+        )
+
+    def config(self) -> dict[str, Any]:
+        """The constructor arguments (JSON-ready)."""
+        return {
+            "episode_length": self.episode_length,
+            "max_displacement": self.max_displacement,
+            "random_walk_step": self.random_walk_step,
+            "control_freq": self.control_freq,
+            "robot": self.robot,
+        }
+
+    def close(self) -> None:
+        self.scene.close()
+
+    # ------------------------------------------------------------------ internals
+
+    def _sample_cube_xy(self) -> np.ndarray:
+        while True:
+            xy = self.np_random.uniform(REGION_LOW, REGION_HIGH, size=(3, 2))
+            gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(3, 1)]
+            if gaps.min() >= MIN_CUBE_SEPARATION:
+                return xy
+
+    def _walk(self) -> np.ndarray:
+        """Targets of the kinematic bodies for this step: ``unm`` stays, the others walk per axis."""
+        pos = self.scene.kinematic_pos()
+        step = self.np_random.uniform(-self.random_walk_step, self.random_walk_step, size=(len(pos) - 1, 2))
+        pos[1:, :2] = np.clip(pos[1:, :2] + step, REGION_LOW, REGION_HIGH)
+        return pos
+
+    def _observation(self) -> np.ndarray:
+        s = self.scene
+        parts = (s.eef_pos(), s.gripper_qpos(), s.mov_pos(), s.kinematic_pos().ravel())
+        return np.concatenate(parts).astype(np.float32)
+
+
+def _normalisation() -> tuple[tuple[float, ...], tuple[float, ...]]:
+    centre = {"x": TABLE_TOP[0], "y": TABLE_TOP[1], "z": TABLE_TOP[2] + 0.05, "0": 0.02, "1": -0.02}
+    dims = [name.split(".")[1] for name in layout.FACTOR_NAMES]
+    return tuple(float(centre[d]) for d in dims), tuple(0.02 if d in "01" else 0.1 for d in dims)
+
+
+def _check_config(
+    episode_length: int, max_displacement: float, random_walk_step: float, control_freq: int, robot: str,
+    render_mode: str | None,
+) -> None:
+    if episode_length < 1:
+        raise ValueError(f"episode_length must be >= 1, got {episode_length}")
+    if not 0 < max_displacement <= 0.1:
+        raise ValueError(f"max_displacement must be in (0, 0.1] metres, got {max_displacement}")
+    if not random_walk_step >= 0:
+        raise ValueError(f"random_walk_step must be >= 0, got {random_walk_step}")
+    if control_freq < 1 or 500 % control_freq:
+        raise ValueError(f"control_freq must divide the 500 Hz physics rate, got {control_freq}")
+    if robot not in ROBOTS:
+        raise ValueError(f"robot must be one of {ROBOTS}, got {robot!r}")
+    if render_mode is not None:
+        raise ValueError(f"render_mode must be None (no renderer), got {render_mode!r}")

@@ -1,0 +1,39 @@
+"""Shared constants of the manipulation environment: factor layout, scene geometry, contact groups.
+
+Pure data (no simulator import), so the ground truth (:mod:`envs.manipulation_truth`) and the
+scripted skills (:mod:`envs.skills`) can be used without loading robosuite.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+OBJECTS = ("eef", "grp", "mov", "unm", "rand", "mk1", "mk2", "mk3")
+OBJECT_DIMS = {"eef": ("x", "y", "z"), "grp": ("0", "1")} | {o: ("x", "y", "z") for o in OBJECTS[2:]}
+FACTOR_NAMES = tuple(f"{o}.{d}" for o in OBJECTS for d in OBJECT_DIMS[o])
+"""``eef.x .. eef.z``, ``grp.0``, ``grp.1``, then ``x, y, z`` of every cube and marker: 23 factors."""
+FACTOR_OBJECTS = tuple(o for o in OBJECTS for _ in OBJECT_DIMS[o])
+NUM_FACTORS = len(FACTOR_NAMES)
+MARKERS = OBJECTS[5:]
+
+
+def factor_slice(obj: str) -> slice:
+    """The factor (observation) indices of object ``obj``."""
+    start = FACTOR_OBJECTS.index(obj)
+    return slice(start, start + len(OBJECT_DIMS[obj]))
+
+
+EEF, GRP, MOV, UNM, RAND = (factor_slice(o) for o in OBJECTS[:5])
+
+TABLE_TOP = np.array([0.0, 0.0, 0.8])
+"""World position of the centre of the table's top surface (metres)."""
+TABLE_SIZE = (0.8, 0.8, 0.05)
+MOV_HALF, FIXED_HALF, MARKER_RADIUS = 0.02, 0.025, 0.015
+"""Half-sizes of ``mov`` and of ``unm``/``rand``; the markers' radius."""
+REGION_LOW, REGION_HIGH = np.array([-0.15, -0.2]), np.array([0.15, 0.2])
+"""Table area (x, y) where cubes and markers start and where ``rand`` and the markers walk."""
+WORKSPACE_LOW, WORKSPACE_HIGH = np.array([-0.25, -0.3, 0.805]), np.array([0.2, 0.3, 1.0])
+"""Box the end-effector's goal is clipped to (at its floor the fingertips touch the table)."""
+
+ROBOT, MOV_BODY, UNM_BODY, RAND_BODY, STATIC = range(5)
+CONTACT_GROUPS = ("robot", "mov", "unm", "rand", "static")
+"""Rows/columns of a step's contact matrix: the robot's moving links, the three cubes, the rest."""

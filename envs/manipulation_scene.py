@@ -1,0 +1,209 @@
+"""The robosuite 1.5 scene behind :class:`envs.manipulation.ManipulationEnv` (dissertation 3.3.1).
+
+A UR5e arm with a parallel two-finger gripper at a table; on the table a free-jointed movable cube
+``mov`` and two *kinematic* cubes, ``unm`` (never moved) and ``rand`` (moved by a random walk), plus
+three visual-only markers. ``unm``, ``rand`` and the markers are MuJoCo mocap bodies: their poses are
+set, never integrated, so no contact can move them; the markers' geoms have ``contype = conaffinity
+= 0``. Mocap bodies are welded to the world for collision filtering, so ``unm`` and ``rand`` pass
+through each other and the table instead of fighting over it.
+
+The gripper is Franka's (robosuite's ``PandaGripper`` model) mounted on the UR5e, not the UR5e's
+default Robotiq 85: robosuite 1.5's Robotiq 85 couples its six finger joints only through soft
+tendons, so its pads tilt under load and squeeze a 4 cm cube out (every scripted grasp failed, and
+opening the fingers at full speed flung a touching cube 20 cm). The parallel gripper grasps
+reliably, and its two slide joints are the chapter's two gripper coordinates.
+
+This module knows robosuite; the gymnasium environment, its factors and its ground truth do not. The
+scene is stepped through robosuite's own ``step`` (controller at 500 Hz, policy at ``control_freq``),
+and records which bodies touched during every physics sub-step of a policy step.
+"""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+from robosuite.controllers import load_composite_controller_config
+from robosuite.environments.manipulation.manipulation_env import ManipulationEnv as RobosuiteManipulationEnv
+from robosuite.models.arenas import TableArena
+from robosuite.models.grippers import register_gripper
+from robosuite.models.grippers.panda_gripper import PandaGripperBase
+from robosuite.models.objects import BoxObject
+from robosuite.models.tasks import ManipulationTask
+
+from envs.manipulation_layout import (
+    FIXED_HALF, MARKER_RADIUS, MARKERS, MOV_BODY, MOV_HALF, RAND_BODY, ROBOT, STATIC, TABLE_SIZE, TABLE_TOP, UNM_BODY,
+)
+
+GRIPPER_JOINTS = ("finger_joint1", "finger_joint2")
+"""The two finger joints of the parallel gripper: the chapter's two gripper joints."""
+
+
+@register_gripper
+class OpeningPandaGripper(PandaGripperBase):
+    """Franka's parallel gripper commanded by one scalar in [-1, 1] (-1 open, 1 closed), mapped
+    proportionally onto both fingers' position targets. robosuite's ``PandaGripper`` integrates the
+    action's *sign*, a hidden state that cannot express the chapter's "degree to which the gripper
+    is opened"."""
+
+    def format_action(self, action: np.ndarray) -> np.ndarray:
+        return np.array([-action[0], action[0]])
+
+    @property
+    def dof(self) -> int:
+        return 1
+
+
+class CausalTableScene(RobosuiteManipulationEnv):
+    """The table scene. The arm runs robosuite's OSC_POSITION controller with *absolute* world-frame
+    goals and a fixed orientation goal (see :meth:`reset_scene`); the gripper takes one scalar.
+
+    :meth:`step_to` advances one policy step; :attr:`contacts` is then the symmetric
+    boolean ``[5, 5]`` matrix (groups :data:`envs.manipulation_layout.CONTACT_GROUPS`) of the body
+    classes that touched in any sub-step, and the kinematic bodies have moved linearly from their
+    old to their new targets over the step.
+    """
+
+    def __init__(self, *, robot: str = "UR5e", control_freq: int = 10) -> None:
+        controller = load_composite_controller_config(robot=robot)
+        # robosuite 1.5.2 raises NotImplementedError for OSC position_limits, and a "delta" OSC_POSITION
+        # re-reads the achieved orientation as its goal every step (so it drifts under contact). We send
+        # absolute goals (clipped to the workspace by the caller) in "desired" mode: the orientation goal
+        # then stays the one the arm started with.
+        controller["body_parts"]["right"].update(type="OSC_POSITION", input_type="absolute", input_ref_frame="world")
+        self.contacts = np.zeros((5, 5), dtype=bool)
+        self._kinematic_from = self._kinematic_to = np.zeros((0, 3))
+        self._substep = 0
+        super().__init__(
+            robots=robot,
+            controller_configs=controller,
+            gripper_types="OpeningPandaGripper",
+            initialization_noise=None,
+            use_camera_obs=False,
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            control_freq=control_freq,
+            horizon=2**31 - 1,
+            ignore_done=True,
+            hard_reset=False,
+        )
+        self._find_ids()
+
+    # ------------------------------------------------------------------ robosuite hooks
+
+    def _load_model(self) -> None:
+        super()._load_model()
+        robot_model = self.robots[0].robot_model
+        robot_model.set_base_xpos(robot_model.base_xpos_offset["table"](TABLE_SIZE[0]))
+        arena = TableArena(table_full_size=TABLE_SIZE, table_offset=TABLE_TOP)
+        arena.set_origin([0, 0, 0])
+        self.mov = BoxObject("mov", size=[MOV_HALF] * 3, rgba=[1, 0, 0, 1])
+        self.unm = BoxObject("unm", size=[FIXED_HALF] * 3, rgba=[0, 0.8, 0, 1], joints=None)
+        self.rand = BoxObject("rand", size=[FIXED_HALF] * 3, rgba=[0, 0, 1, 1], joints=None)
+        for kinematic in (self.unm, self.rand):
+            kinematic.get_obj().set("mocap", "true")
+        for name in MARKERS:
+            body = ET.SubElement(arena.worldbody, "body", name=name, mocap="true", pos="0 0 -1")
+            ET.SubElement(body, "geom", name=f"{name}_g", type="cylinder", size=f"{MARKER_RADIUS} 0.001",
+                          rgba="0 0 0 1", contype="0", conaffinity="0", group="1")
+        self.model = ManipulationTask(mujoco_arena=arena, mujoco_robots=[robot_model],
+                                      mujoco_objects=[self.mov, self.unm, self.rand])
+
+    def _setup_observables(self) -> OrderedDict:
+        return OrderedDict()  # the gymnasium env reads the simulator directly; this saves ~10% per step
+
+    def reward(self, action: Any = None) -> float:
+        return 0.0
+
+    def _pre_action(self, action: np.ndarray, policy_step: bool = False) -> None:
+        super()._pre_action(action, policy_step)
+        self._record_contacts()
+        self._substep += 1
+        frac = min(self._substep / round(self.control_timestep / self.model_timestep), 1.0)
+        path = self._kinematic_to - self._kinematic_from
+        self.sim.data.mocap_pos[self.kinematic_mocap] = self._kinematic_from + frac * path
+
+    # ------------------------------------------------------------------ what the gym env calls
+
+    def reset_scene(self) -> None:
+        """robosuite's soft reset (robot at its initial joints), then the arm's goal mode pinned."""
+        self.reset()
+        self.robots[0].part_controllers["right"].set_goal_update_mode("desired")
+        self.contacts[:] = False
+
+    def commit_poses(self) -> None:
+        """Make a state just written into the simulator (poses, a restored snapshot) take effect."""
+        self.sim.forward()
+        for controller in self.robots[0].part_controllers.values():
+            controller.new_update = True  # else the first step reuses the arm state cached before the write
+        self._kinematic_from = self._kinematic_to = self.kinematic_pos()
+
+    def step_to(self, goal: np.ndarray, grip: float, kinematic_targets: np.ndarray) -> None:
+        """One policy step towards eef ``goal`` (world xyz) with gripper command ``grip`` in [-1, 1],
+        while the kinematic bodies (``unm``, ``rand``, markers, in that order) glide to their targets."""
+        self.contacts[:] = False
+        self._substep = 0
+        self._kinematic_from = self.sim.data.mocap_pos[self.kinematic_mocap].copy()
+        self._kinematic_to = np.asarray(kinematic_targets, dtype=np.float64)
+        self.step(np.concatenate([goal, [grip]]))
+
+    def eef_pos(self) -> np.ndarray:
+        return self.sim.data.site_xpos[self.robots[0].eef_site_id["right"]].copy()
+
+    def gripper_qpos(self) -> np.ndarray:
+        return self.sim.data.qpos[self.gripper_qpos_addr].copy()
+
+    def mov_pos(self) -> np.ndarray:
+        return self.sim.data.qpos[self.mov_qpos_addr:self.mov_qpos_addr + 3].copy()
+
+    def mov_quat(self) -> np.ndarray:
+        return self.sim.data.qpos[self.mov_qpos_addr + 3:self.mov_qpos_addr + 7].copy()
+
+    def set_mov_pose(self, pos: np.ndarray, quat: np.ndarray) -> None:
+        """Place ``mov`` (quat is w, x, y, z) at rest."""
+        a = self.mov_qpos_addr
+        self.sim.data.qpos[a:a + 7] = np.concatenate([pos, quat])
+        self.sim.data.qvel[self.mov_qvel_addr:self.mov_qvel_addr + 6] = 0.0
+
+    def kinematic_pos(self) -> np.ndarray:
+        """``[5, 3]`` positions of ``unm``, ``rand``, ``mk1``, ``mk2``, ``mk3``."""
+        return self.sim.data.mocap_pos[self.kinematic_mocap].copy()
+
+    def set_kinematic_pose(self, pos: np.ndarray, quat: np.ndarray | None = None) -> None:
+        self.sim.data.mocap_pos[self.kinematic_mocap] = pos
+        if quat is not None:
+            self.sim.data.mocap_quat[self.kinematic_mocap] = quat
+
+    # ------------------------------------------------------------------ internals
+
+    def _find_ids(self) -> None:
+        m = self.sim.model._model
+        prefix = self.robots[0].gripper["right"].naming_prefix
+        joints = [m.joint(prefix + j).id for j in GRIPPER_JOINTS]
+        self.gripper_qpos_addr = m.jnt_qposadr[joints]
+        mov_joint = m.joint(self.mov.joints[0]).id
+        self.mov_qpos_addr, self.mov_qvel_addr = int(m.jnt_qposadr[mov_joint]), int(m.jnt_dofadr[mov_joint])
+        bodies = [self.unm.root_body, self.rand.root_body, *MARKERS]
+        self.kinematic_mocap = np.array([m.body_mocapid[m.body(b).id] for b in bodies])
+        self.geom_group = _geom_groups(m, self.robots[0].robot_model.root_body, self.mov.root_body,
+                                       self.unm.root_body, self.rand.root_body)
+
+    def _record_contacts(self) -> None:
+        data = self.sim.data._data
+        if data.ncon:
+            groups = self.geom_group[data.contact.geom[: data.ncon]]
+            self.contacts[groups[:, 0], groups[:, 1]] = True
+            self.contacts[groups[:, 1], groups[:, 0]] = True
+
+
+def _geom_groups(m: Any, robot_root: str, mov: str, unm: str, rand: str) -> np.ndarray:
+    """Contact group of every geom: the moving links of the robot (its pedestal and base, welded to
+    the world, always touch the floor and are static scenery), the three cubes, the static rest."""
+    groups = np.full(m.ngeom, STATIC, dtype=np.int64)
+    body = m.geom_bodyid
+    robot = (m.body_rootid[body] == m.body(robot_root).id) & (m.body_weldid[body] != 0)
+    groups[robot] = ROBOT
+    for name, group in ((mov, MOV_BODY), (unm, UNM_BODY), (rand, RAND_BODY)):
+        groups[body == m.body(name).id] = group
+    return groups
