@@ -90,6 +90,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
                 core.checkpoint(ckpt)
                 shell.checkpoint_requested, last_ckpt = False, now
             shell.beat({"heldout": core.heldout.size, "evaluated_version": core.evaluated_version,
+                        "reports": len(core.history),
                         **(core.history[-1] if core.history else {})})
             time.sleep(0.02)
     finally:

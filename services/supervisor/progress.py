@@ -8,6 +8,9 @@ from typing import TextIO
 from proto.messages import GraphReport, ServiceStats
 
 
+CUMULATIVE = ("env_steps", "episodes", "updates")
+
+
 class Progress:
     """Keeps the newest stats per service instance and renders one status line."""
 
@@ -16,19 +19,29 @@ class Progress:
         self.interactive = stream.isatty() if interactive is None else interactive
         self.every_s = every_s
         self.stats: dict[tuple[str, str], ServiceStats] = {}
+        self.carried: dict[tuple[str, str, str], float] = {}
         self.report: GraphReport | None = None
         self.started = time.monotonic()
         self._last_line = 0.0
         self._rate: dict[str, tuple[float, float]] = {}
 
     def on_stats(self, stats: ServiceStats) -> None:
-        self.stats[(stats.service, stats.instance)] = stats
+        """Keep the newest beat per instance; a counter that falls (a restarted process counting
+        from zero again) carries its previous total, so run totals never go backwards."""
+        ident = (stats.service, stats.instance)
+        previous = self.stats.get(ident)
+        if previous is not None:
+            for key in CUMULATIVE:
+                if stats.values.get(key, 0.0) < previous.values.get(key, 0.0):
+                    self.carried[ident + (key,)] = self.carried.get(ident + (key,), 0.0) + previous.values[key]
+        self.stats[ident] = stats
 
     def on_report(self, report: GraphReport) -> None:
         self.report = report
 
     def value(self, service: str, key: str) -> float:
-        return sum(s.values.get(key, 0.0) for (svc, _), s in self.stats.items() if svc == service)
+        return sum(s.values.get(key, 0.0) + self.carried.get((svc, inst, key), 0.0)
+                   for (svc, inst), s in self.stats.items() if svc == service)
 
     def env_steps(self) -> int:
         return int(self.value("env-worker", "env_steps"))

@@ -36,3 +36,16 @@ def test_bad_values_are_clear_errors() -> None:
 def test_write_config(tmp_path) -> None:
     write_config(RunConfig(graph="chain"), tmp_path / "c.json")
     assert json.loads((tmp_path / "c.json").read_text())["graph"] == "chain"
+
+
+def test_progress_totals_survive_a_restarted_counter() -> None:
+    import io
+
+    from proto.messages import ServiceStats
+    from services.supervisor.progress import Progress
+
+    p = Progress(stream=io.StringIO(), interactive=False)
+    for steps in (100.0, 300.0, 50.0, 80.0):  # the worker restarts after 300 and counts from zero
+        p.on_stats(ServiceStats("env-worker", "0", {"env_steps": steps}))
+    p.on_stats(ServiceStats("env-worker", "1", {"env_steps": 20.0}))
+    assert p.env_steps() == 300 + 80 + 20
