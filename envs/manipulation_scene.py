@@ -67,7 +67,7 @@ class CausalTableScene(RobosuiteManipulationEnv):
 
     def __init__(self, *, robot: str = "UR5e", control_freq: int = 10) -> None:
         controller = load_composite_controller_config(robot=robot)
-        # robosuite 1.5.2 raises NotImplementedError for OSC position_limits, and a "delta" OSC_POSITION
+        # robosuite 1.5.2 does not implement OSC position_limits (it raises), and a "delta" OSC_POSITION
         # re-reads the achieved orientation as its goal every step (so it drifts under contact). We send
         # absolute goals (clipped to the workspace by the caller) in "desired" mode: the orientation goal
         # then stays the one the arm started with.
