@@ -21,3 +21,5 @@ class EnvWorkerConfig(ServiceConfig):
     max_steps_per_second: float = doc(0.0, "throttle (0: as fast as possible)")
     max_steps: int = doc(0, "stop after this many env steps (0: never)")
     local_graphs: bool = doc(False, "attach the simulator's ground-truth local graphs to each batch")
+    follow_policy: bool = doc(False, "act with the newest policy weights (weights/policy); random until they arrive")
+    policy_poll_s: float = doc(5.0, "follow_policy: also ask for the latest policy this often, so a missed update is caught")

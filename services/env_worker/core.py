@@ -4,16 +4,20 @@ from __future__ import annotations
 import dataclasses
 import socket
 import zlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from envs import make_env
-from proto.messages import EnvSpec, TransitionBatch
+from proto.messages import EnvSpec, TransitionBatch, Weights
 from services.env_worker.config import EnvWorkerConfig
+
+if TYPE_CHECKING:
+    from services.policy_learner.policy_weights import Agent
 
 
 def env_kwargs(cfg: EnvWorkerConfig) -> dict:
-    if cfg.env == "chemical":
+    if cfg.env in ("chemical", "chemical-match"):
         return {"graph": cfg.graph, "num_objects": cfg.num_objects, "cpt_seed": cfg.cpt_seed}
     return {}
 
@@ -29,6 +33,34 @@ class RandomPolicy:
 
     def act(self, observation: np.ndarray) -> np.ndarray:
         return np.atleast_1d(np.asarray(self.space.sample(), dtype=np.float32))
+
+
+class PolicyActor:
+    """Acts with the newest policy weights loaded; ``version`` is theirs (0: none loaded yet).
+
+    torch is imported with the first weights, so a worker that never follows a policy starts fast."""
+
+    def __init__(self, obs_dim: int, seed: int) -> None:
+        self.obs_dim, self.seed = obs_dim, seed
+        self.agent: Agent | None = None
+        self.config_json = ""
+        self.version = 0
+
+    def load(self, weights: Weights) -> bool:
+        """Take ``weights`` if newer than the current ones (ValueError if they do not fit this env)."""
+        if weights.version <= self.version:
+            return False
+        from services.policy_learner.policy_weights import agent_from_config_json, import_policy
+
+        agent = self.agent
+        if weights.config_json != self.config_json:
+            agent = agent_from_config_json(weights.config_json, self.seed, self.obs_dim)
+        import_policy(agent, weights.tensors)
+        self.agent, self.config_json, self.version = agent, weights.config_json, weights.version
+        return True
+
+    def act(self, observation: np.ndarray) -> np.ndarray:
+        return np.atleast_1d(np.asarray(self.agent.act(observation), dtype=np.float32))
 
 
 def resolve_worker_index(cfg: EnvWorkerConfig) -> EnvWorkerConfig:
@@ -50,10 +82,20 @@ class EnvWorkerCore:
         self.env = make_env(cfg.env, **env_kwargs(cfg))
         self.spec: EnvSpec = self.env.unwrapped.env_spec()
         seed = cfg.seed + cfg.worker_index
-        self.policy = RandomPolicy(self.env.action_space, seed)
+        self.random_policy = RandomPolicy(self.env.action_space, seed)
+        self.actor = PolicyActor(self.spec.state_dim, seed)
         self.observation, _ = self.env.reset(seed=seed)
         self.episode, self.step_in_episode = 0, 0
         self.env_steps, self.seq = 0, 0
+
+    @property
+    def policy(self) -> RandomPolicy | PolicyActor:
+        """The collection policy: the newest policy weights once any arrived, random before."""
+        return self.actor if self.actor.version > 0 else self.random_policy
+
+    def apply_weights(self, weights: Weights) -> bool:
+        """Act with ``weights`` from the next batch on, if newer (ValueError if they do not fit)."""
+        return self.actor.load(weights)
 
     def collect(self, steps: int | None = None) -> TransitionBatch:
         """Step the environment ``steps`` times (resetting at episode ends) and return the batch."""
@@ -64,8 +106,9 @@ class EnvWorkerCore:
         terminated, truncated = np.zeros(steps, bool), np.zeros(steps, bool)
         episode, step = np.empty(steps, np.int64), np.empty(steps, np.int32)
         graphs = np.empty((steps, self.spec.num_factors, self.spec.num_factors + 1), np.uint8) if self.cfg.local_graphs else None
+        policy = self.policy
         for t in range(steps):
-            act = self.policy.act(self.observation)
+            act = policy.act(self.observation)
             env_action = int(act[0]) if self.spec.action_kind == "categorical" else act
             obs, r, term, trunc, info = self.env.step(env_action)
             state[t], action[t], reward[t], next_state[t] = self.observation, act, r, obs
@@ -78,7 +121,7 @@ class EnvWorkerCore:
                 self.observation, _ = self.env.reset()
                 self.episode, self.step_in_episode = self.episode + 1, 0
         self.env_steps += steps
-        batch = TransitionBatch(worker_id=self.worker_id, seq=self.seq, policy_version=self.policy.version,
+        batch = TransitionBatch(worker_id=self.worker_id, seq=self.seq, policy_version=policy.version,
                                 state=state, action=action, reward=reward, next_state=next_state,
                                 terminated=terminated, truncated=truncated, episode_id=episode, step=step,
                                 local_graph=graphs)

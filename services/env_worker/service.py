@@ -6,12 +6,13 @@ import sys
 import time
 
 from proto import topics
-from proto.codec import encode
+from proto.codec import ProtocolError, decode, encode
+from proto.messages import Weights
 from services.bus.base import Transport
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.runtime.config import parse_config
-from services.runtime.shell import ServiceShell, setup_logging
+from services.runtime.shell import Inbox, ServiceShell, setup_logging
 
 SERVICE = "env-worker"
 log = logging.getLogger(SERVICE)
@@ -21,6 +22,13 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     """Publish the EnvSpec (also to late queries), then transition batches until stopped."""
     core = EnvWorkerCore(cfg)
     cfg = core.cfg
+    if cfg.follow_policy:
+        import torch
+
+        from services.policy_learner.policy_weights import warm_up
+
+        torch.set_num_threads(1)
+        warm_up()  # before going live, so loading the first policy never waits for imports
     shell = ServiceShell(SERVICE, cfg, transport)
     steps = shell.metrics.counter("causeway_env_steps", "Environment steps taken")
     episodes = shell.metrics.counter("causeway_env_episodes", "Episodes finished")
@@ -30,6 +38,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                                               (0.0005, 0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0))
     spec_value = shell.transport.serve_latest(topics.env_spec(cfg.run_id))
     spec_value.set(encode(core.spec))
+    follower = _PolicyFollower(shell, core, cfg) if cfg.follow_policy else None
     key = topics.transitions(cfg.run_id, core.worker_id)
     started, last_episode = time.monotonic(), 0
     try:
@@ -38,6 +47,8 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             if shell.paused:
                 time.sleep(0.05)
                 continue
+            if follower is not None:
+                follower.update()
             batch = core.collect()
             t0 = time.perf_counter()
             sent.inc(shell.publish(key, batch))
@@ -46,7 +57,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             batches.inc()
             episodes.inc(core.episode - last_episode)
             last_episode = core.episode
-            shell.beat({"env_steps": core.env_steps, "episodes": core.episode})
+            shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": batch.policy_version})
             if cfg.max_steps and core.env_steps >= cfg.max_steps:
                 break
             _throttle(cfg.max_steps_per_second, core.env_steps, started)
@@ -54,6 +65,60 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
         shell.beat({"env_steps": core.env_steps, "episodes": core.episode}, force=True)
         spec_value.close()
         shell.close()
+
+
+class _PolicyFollower:
+    """Keeps the worker's actor on the newest policy: the published stream, a query at start (a late
+    worker catches up at once) and a query every ``policy_poll_s`` (a missed publication is caught).
+    The version in use is exported, so a worker left behind is visible."""
+
+    def __init__(self, shell: ServiceShell, core: EnvWorkerCore, cfg: EnvWorkerConfig) -> None:
+        from services.policy_learner.policy_weights import MODEL
+
+        self.shell, self.core, self.cfg = shell, core, cfg
+        self.key = topics.weights(cfg.run_id, MODEL)
+        self.inbox: Inbox = shell.inbox("policy", Weights, maxsize=4)
+        shell.subscribe(self.key, self.inbox)
+        m = shell.metrics
+        self.in_use = m.gauge("causeway_policy_version_in_use", "Version of the policy weights this worker acts with")
+        self.loaded = m.counter("causeway_policy_weights_loaded", "Policy weights loaded by this worker")
+        self.skipped = m.counter("causeway_policy_versions_skipped",
+                                 "Versions superseded before this worker loaded them (newer ones arrived first)")
+        self.last_query = 0.0
+
+    def update(self) -> None:
+        candidates = [w for _, w in self.inbox.drain()]
+        now = time.monotonic()
+        if now - self.last_query >= self.cfg.policy_poll_s:
+            candidates += self._query()
+            self.last_query = now
+        if candidates:
+            self._load(max(candidates, key=lambda w: w.version))
+
+    def _query(self) -> list[Weights]:
+        found = []
+        for _, payload in self.shell.transport.query(self.key, timeout=1.0):
+            try:
+                found.append(decode(payload, Weights))
+            except ProtocolError as exc:
+                self.shell.metrics.reject(exc.reason)
+        return found
+
+    def _load(self, weights: Weights) -> None:
+        before = self.core.actor.version
+        try:
+            if not self.core.apply_weights(weights):
+                return
+        except ValueError as exc:
+            self.shell.metrics.reject("inconsistent")
+            log.warning("rejected policy v%d: %s", weights.version, exc)
+            return
+        self.loaded.inc()
+        if before:
+            self.skipped.inc(max(weights.version - before - 1, 0))
+        else:
+            log.info("acting with policy v%d from now on", weights.version)
+        self.in_use.set(weights.version)
 
 
 def _throttle(rate: float, done: int, started: float) -> None:

@@ -7,6 +7,10 @@ from causal.cdl import CDLConfig
 from services.runtime.config import doc
 
 _CDL = CDLConfig()
+COLLECTORS = ("random", "ppo", "sac")
+INTRINSIC = ("none", "preddiff", "curiosity", "disagreement")
+TASKS = {"": None, "match": "chemical-match"}
+"""Task name -> the environment that poses it."""
 
 
 @dataclass(frozen=True)
@@ -38,3 +42,11 @@ class RunConfig:
     dashboard_port: int = doc(8080, "port of the live causal-graph page on 127.0.0.1 (0: no dashboard)")
     checkpoint_every_s: float = doc(30.0, "seconds between service checkpoints")
     progress: bool = doc(True, "show live progress on the terminal")
+    collector: str = doc("random", "collection policy: random, ppo or sac (the last two start a policy-learner "
+                                   "whose newest weights the workers act with)")
+    intrinsic: str = doc("none", "intrinsic reward of the policy: none, preddiff, curiosity or disagreement "
+                                 "(all but none start an intrinsic-reward service)")
+    task: str = doc("", "task on the environment: '' (none, reward-free) or match (env chemical-match)")
+    abstraction: bool = doc(True, "mask the policy input to the learned abstraction (false: the dense baseline)")
+    max_policy_lag: int = doc(4, "policy-learner: drop batches more than this many policy versions old")
+    intrinsic_coef: float = doc(1.0, "policy-learner: weight of the intrinsic reward")

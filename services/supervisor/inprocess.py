@@ -19,24 +19,29 @@ from services.dashboard import service as dashboard_service
 from services.dynamics_learner import service as learner_service
 from services.env_worker import service as worker_service
 from services.graph_evaluator import service as evaluator_service
+from services.intrinsic_reward import service as intrinsic_service
+from services.policy_learner import service as policy_service
 from services.supervisor.config import RunConfig
-from services.supervisor.supervisor import resolve, service_configs, worker_config
+from services.supervisor.supervisor import learning_services, resolve, service_configs, worker_config
 
 log = logging.getLogger("inprocess")
 
 
 class InProcessStack:
-    """env-workers, dynamics-learner and graph-evaluator as threads sharing one in-memory bus."""
+    """env-workers and the learning services ``cfg`` asks for (or ``services``) as threads sharing
+    one in-memory bus."""
 
-    def __init__(self, cfg: RunConfig, services: tuple[str, ...] = ("dynamics-learner", "graph-evaluator"),
+    def __init__(self, cfg: RunConfig, services: tuple[str, ...] | None = None,
                  config_overrides: dict[str, dict] | None = None) -> None:
         self.cfg = resolve(dataclasses.replace(cfg, metrics_base_port=0))
+        services = learning_services(self.cfg) if services is None else services
         self.bus = InMemoryBus()
         self.control = InMemoryTransport(self.bus)
         configs = service_configs(self.cfg, "memory")
         overrides = config_overrides or {}
         runners: dict[str, Callable] = {"dynamics-learner": learner_service.run, "graph-evaluator": evaluator_service.run,
-                                        "dashboard": dashboard_service.run}
+                                        "dashboard": dashboard_service.run, "policy-learner": policy_service.run,
+                                        "intrinsic-reward": intrinsic_service.run}
         self.threads: list[threading.Thread] = []
         self.errors: list[BaseException] = []
         for name in services:

@@ -27,9 +27,11 @@ from services.dashboard.config import DashboardConfig
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.env_worker.config import EnvWorkerConfig
 from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.intrinsic_reward.config import IntrinsicRewardConfig
+from services.policy_learner.config import PolicyLearnerConfig
 from services.runtime.config import to_environ, write_config
 from services.supervisor import report as reporting
-from services.supervisor.config import RunConfig
+from services.supervisor.config import COLLECTORS, INTRINSIC, TASKS, RunConfig
 from services.supervisor.processes import ManagedProcess, stop_all
 from services.supervisor.progress import Progress
 
@@ -37,12 +39,28 @@ log = logging.getLogger("supervisor")
 
 
 def resolve(cfg: RunConfig) -> RunConfig:
-    """Fill in the derived defaults: run id, run directory, router port."""
+    """Fill in the derived defaults: run id, run directory, router port, the task's environment."""
+    if cfg.collector not in COLLECTORS or cfg.intrinsic not in INTRINSIC or cfg.task not in TASKS:
+        raise ValueError(f"collector must be one of {COLLECTORS}, intrinsic one of {INTRINSIC}, "
+                         f"task one of {tuple(TASKS)}; got {cfg.collector!r}, {cfg.intrinsic!r}, {cfg.task!r}")
+    if cfg.intrinsic != "none" and cfg.collector == "random":
+        raise ValueError("an intrinsic reward needs a policy to train: use --collector ppo or sac")
+    cfg = dataclasses.replace(cfg, env=TASKS[cfg.task] or cfg.env)
+    if cfg.collector == "sac" and _discrete_actions(cfg):
+        raise ValueError(f"SAC needs continuous actions; {cfg.env} has discrete ones (use --collector ppo)")
     run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
                             f"{cfg.env}-{Path(cfg.graph).stem}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_id = "".join(c if c.isalnum() or c in "_.-" else "-" for c in run_id)
     return dataclasses.replace(cfg, run_id=run_id, run_dir=cfg.run_dir or f"runs/{run_id}",
                                router_port=cfg.router_port or free_tcp_port())
+
+
+def _discrete_actions(cfg: RunConfig) -> bool:
+    from envs import make_env
+    from services.env_worker.core import env_kwargs
+
+    probe = worker_config(dataclasses.replace(cfg, metrics_base_port=0), "", 0)
+    return make_env(cfg.env, **env_kwargs(probe)).unwrapped.env_spec().action_kind == "categorical"
 
 
 def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict[str, object]:
@@ -59,8 +77,21 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
                                      checkpoint_every_s=cfg.checkpoint_every_s)
     dashboard = DashboardConfig(**common, metrics_port=port(3), http_host="127.0.0.1",
                                 http_port=cfg.dashboard_port, watch_run=cfg.run_id)
+    policy = PolicyLearnerConfig(**common, metrics_port=port(4), algo=cfg.collector if cfg.collector != "random" else "ppo",
+                                 seed=cfg.seed, scored=cfg.intrinsic != "none", max_policy_lag=cfg.max_policy_lag,
+                                 abstraction=cfg.abstraction, intrinsic_coef=cfg.intrinsic_coef,
+                                 checkpoint_every_s=cfg.checkpoint_every_s)
+    intrinsic = IntrinsicRewardConfig(**common, metrics_port=port(5),
+                                      reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff")
     return {"dynamics-learner": learner, "graph-evaluator": evaluator, "dashboard": dashboard,
+            "policy-learner": policy, "intrinsic-reward": intrinsic,
             "env-worker": worker_config(cfg, connect, worker_index)}
+
+
+def learning_services(cfg: RunConfig) -> tuple[str, ...]:
+    """The services besides env-workers and dashboard that ``cfg`` asks for."""
+    return (("dynamics-learner", "graph-evaluator") + (("policy-learner",) if cfg.collector != "random" else ())
+            + (("intrinsic-reward",) if cfg.intrinsic != "none" else ()))
 
 
 def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
@@ -68,11 +99,12 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
     return EnvWorkerConfig(run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir, metrics_port=port,
                            instance=str(index), env=cfg.env, graph=cfg.graph, num_objects=cfg.num_objects,
                            cpt_seed=cfg.cpt_seed, seed=cfg.seed, worker_index=index,
-                           max_steps_per_second=cfg.steps_per_second)
+                           max_steps_per_second=cfg.steps_per_second, follow_policy=cfg.collector != "random")
 
 
 MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
-           "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard"}
+           "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard",
+           "policy-learner": "services.policy_learner", "intrinsic-reward": "services.intrinsic_reward"}
 
 
 class Supervisor:
@@ -115,8 +147,9 @@ class Supervisor:
         self.bus.subscribe(topics.graph(self.cfg.run_id), self._on_graph)
         for target in ("supervisor", "all"):
             self.bus.subscribe(topics.control(self.cfg.run_id, target), self._on_control)
+        self.bus.declare_token(topics.alive(self.cfg.run_id, "supervisor", "0"))
         configs = service_configs(self.cfg, self.connect)
-        for name in ("dynamics-learner", "graph-evaluator") + (("dashboard",) if self.cfg.dashboard_port else ()):
+        for name in learning_services(self.cfg) + (("dashboard",) if self.cfg.dashboard_port else ()):
             self.process(name, MODULES[name], configs[name]).start()
         for i in range(self.cfg.workers):
             self.add_worker(i)

@@ -1,0 +1,181 @@
+"""Intrinsic rewards from a learned causal dynamics model (no bus).
+
+A reward maps transitions ``(s, a, s')`` to one float per transition, given the CDL model and the
+causal parents ``PA(j)`` of every next-state factor (a ``d_S x (d_S + 1)`` graph, self-edges forced).
+Rewards live in a small registry (:data:`REWARDS`) so new ones (ELDEN's, an ensemble's) can join.
+
+* ``preddiff`` (CDL, eq. 3.4): ``r = tanh(eta * sum_j log p(s'_j | s, a) / p(s'_j | PA(j)))``, the
+  dense predictor against the causal one: large where the causal model misses something.
+* ``curiosity``: prediction error, ``eta * sum_j -log p(s'_j | PA(j))`` (NLL of the causal predictor).
+* ``disagreement``: ``eta * sum_d Var_k f_k(s, a)_d`` across the K members of a
+  :class:`BootstrapEnsemble` of forward models, each trained on its own bootstrap resample
+  (Poisson(1) weight per member and transition, fixed when the transition arrives).
+
+The first two share one feature computation: the dense and the causal aggregate are two masks on it.
+A reward's ``source`` says which model it reads: ``cdl`` (the published CDL weights) or ``ensemble``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, ClassVar, Protocol
+
+import numpy as np
+import torch
+
+from torch import nn
+
+from causal.cdl import CDLModel
+from causal.cdl_trainer import with_self_edges
+from causal.factored import FactorCodec, FactorLayout
+
+
+class IntrinsicReward(Protocol):
+    """Rewards ``[B]`` for transitions, from a dynamics model and its causal parents."""
+
+    name: ClassVar[str]
+    source: ClassVar[str]
+
+    def __call__(self, model: CDLModel | BootstrapEnsemble, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+                 next_state: torch.Tensor) -> torch.Tensor: ...
+
+
+def causal_parents(adjacency: np.ndarray) -> torch.Tensor:
+    """A graph ``[d_S, d_S + 1]`` as a bool parent mask with self-edges (Assumption 4)."""
+    return torch.from_numpy(with_self_edges(adjacency))
+
+
+@torch.no_grad()
+def dense_and_causal_nll(model: CDLModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+                         next_state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """NLL ``[J, B]`` of every next-state factor under the dense predictor (every input) and the
+    causal predictor (inputs ``PA(j)`` only), from one feature computation."""
+    feats = model.features(state, action)
+    keep = model.to_group_order(causal_parents(parents))
+    dense = feats.amax(dim=1, keepdim=True)
+    causal = feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True)
+    nll = model.nll(model.predict(torch.cat([dense, causal], dim=1)), state, next_state)
+    return nll[:, 0], nll[:, 1]
+
+
+@dataclass(frozen=True)
+class PredDiff:
+    """CDL's prediction difference (eq. 3.4), squashed by tanh into (-1, 1)."""
+
+    name: ClassVar[str] = "preddiff"
+    source: ClassVar[str] = "cdl"
+    eta: float = 1.0
+
+    def __call__(self, model: CDLModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+                 next_state: torch.Tensor) -> torch.Tensor:
+        dense, causal = dense_and_causal_nll(model, parents, state, action, next_state)
+        return torch.tanh(self.eta * (causal - dense).sum(dim=0))
+
+
+@dataclass(frozen=True)
+class PredictionError:
+    """Curiosity as the causal predictor's NLL of the observed next state, summed over factors."""
+
+    name: ClassVar[str] = "curiosity"
+    source: ClassVar[str] = "cdl"
+    eta: float = 1.0
+
+    def __call__(self, model: CDLModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+                 next_state: torch.Tensor) -> torch.Tensor:
+        _, causal = dense_and_causal_nll(model, parents, state, action, next_state)
+        return self.eta * causal.sum(dim=0)
+
+
+class BootstrapEnsemble(nn.Module):
+    """K forward models ``(s, a) -> encoded s'`` (one-hot categories, normalised values) as stacked
+    tensors, with a replay whose rows carry one Poisson(1) bootstrap weight per member."""
+
+    def __init__(self, layout: FactorLayout, members: int = 5, hidden: int = 64, lr: float = 1e-3,
+                 capacity: int = 50_000, seed: int = 0) -> None:
+        super().__init__()
+        torch.manual_seed(seed)
+        self.codec = FactorCodec(layout)
+        self.members = members
+        inputs = layout.num_factors * layout.input_width + layout.action_width
+        outputs = layout.num_factors * layout.input_width
+        widths = [(inputs, hidden), (hidden, hidden), (hidden, outputs)]
+        self.weights = nn.ParameterList([nn.Parameter(torch.randn(members, i, o) / i**0.5) for i, o in widths])
+        self.biases = nn.ParameterList([nn.Parameter(torch.zeros(members, 1, o)) for _, o in widths])
+        self.optimizer = torch.optim.Adam(self.parameters(), lr=lr)
+        self.rng = np.random.default_rng(seed)
+        action_dim = 1 if layout.action_kind == "categorical" else layout.action_size
+        widths_of = {"state": layout.state_dim, "action": action_dim, "next_state": layout.state_dim, "boot": members}
+        self.rows = {name: np.zeros((capacity, width), np.float32) for name, width in widths_of.items()}
+        self.size = self.cursor = self.updates = 0
+
+    def predict(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Every member's prediction ``[K, B, outputs]``."""
+        x = torch.cat([self.codec.encode_state(state).flatten(1), self.codec.encode_action(action)], dim=1)
+        x = x.expand(self.members, -1, -1)
+        for n, (w, b) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(b, x, w)
+            x = torch.relu(x) if n < len(self.weights) - 1 else x
+        return x
+
+    @torch.no_grad()
+    def disagreement(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``sum_d Var_k`` of the members' predictions, ``[B]``."""
+        return self.predict(state, action).var(dim=0, unbiased=False).sum(-1)
+
+    def add(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray) -> None:
+        """Store transitions, each with a Poisson(1) weight per member (its bootstrap multiplicity)."""
+        boot = self.rng.poisson(1.0, (len(state), self.members)).astype(np.float32)
+        capacity = len(self.rows["boot"])
+        index = (self.cursor + np.arange(len(state))) % capacity
+        for name, values in (("state", state), ("action", action), ("next_state", next_state), ("boot", boot)):
+            self.rows[name][index] = values
+        self.cursor = int((self.cursor + len(state)) % capacity)
+        self.size = min(capacity, self.size + len(state))
+
+    def train_step(self, batch_size: int) -> float:
+        """One Adam step on a uniform sample; member k's squared error is weighted by its bootstrap weights."""
+        index = self.rng.integers(0, self.size, batch_size)
+        s, a, n, boot = (torch.from_numpy(self.rows[k][index]) for k in ("state", "action", "next_state", "boot"))
+        error = (self.predict(s, a) - self.codec.encode_state(n).flatten(1)).square().sum(-1)
+        loss = (error * boot.T).sum() / boot.sum().clamp_min(1.0)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.updates += 1
+        return loss.item()
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """Ensemble disagreement: the variance of K bootstrap forward models' predictions, summed."""
+
+    name: ClassVar[str] = "disagreement"
+    source: ClassVar[str] = "ensemble"
+    eta: float = 1.0
+
+    def __call__(self, model: BootstrapEnsemble, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+                 next_state: torch.Tensor) -> torch.Tensor:
+        return self.eta * model.disagreement(state, action)
+
+
+REWARDS: dict[str, Callable[..., IntrinsicReward]] = {
+    PredDiff.name: PredDiff, PredictionError.name: PredictionError, Disagreement.name: Disagreement}
+"""Intrinsic rewards by name; each factory takes ``eta``."""
+
+
+def make_reward(name: str, eta: float = 1.0) -> IntrinsicReward:
+    """The registered reward ``name``; unknown names raise ``KeyError`` listing the known ones."""
+    try:
+        return REWARDS[name](eta=eta)
+    except KeyError:
+        raise KeyError(f"unknown intrinsic reward {name!r}; known: {sorted(REWARDS)}") from None
+
+
+def score(reward: IntrinsicReward, model: CDLModel | BootstrapEnsemble, parents: np.ndarray, state: np.ndarray,
+          action: np.ndarray, next_state: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    """``reward`` on numpy transitions, in chunks of ``chunk`` rows; float32 ``[B]``."""
+    out = []
+    for start in range(0, len(state), chunk):
+        s, a, n = (torch.from_numpy(np.ascontiguousarray(x[start : start + chunk], np.float32))
+                   for x in (state, action, next_state))
+        out.append(reward(model, parents, s, a, n).numpy())
+    return np.concatenate(out).astype(np.float32) if out else np.zeros(0, np.float32)

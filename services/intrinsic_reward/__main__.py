@@ -1,0 +1,3 @@
+from services.intrinsic_reward.service import main
+
+main()

@@ -1,0 +1,77 @@
+"""intrinsic-reward core: the newest CDL weights and causal graph score transition batches. No bus."""
+from __future__ import annotations
+
+import numpy as np
+
+from causal.cdl import CDLModel, import_tensors, model_from_config_json
+from causal.factored import FactorLayout
+from causal.intrinsic import BootstrapEnsemble, make_reward, score
+from proto.codec import ProtocolError, check_fits
+from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
+from services.intrinsic_reward.config import IntrinsicRewardConfig
+
+
+class IntrinsicRewardCore:
+    """Scores batches with ``cfg.reward``. Until the first weights arrive every reward is 0 (with
+    ``weights_version`` 0), so the policy-learner is never starved; until the first graph the
+    causal parents are every input (PredDiff is then 0).
+
+    An ``ensemble`` reward reads this service's own :class:`BootstrapEnsemble`, trained on the
+    batches after scoring them; its ``weights_version`` is the ensemble's update count."""
+
+    def __init__(self, cfg: IntrinsicRewardConfig, spec: EnvSpec) -> None:
+        self.cfg, self.spec = cfg, spec
+        self.reward = make_reward(cfg.reward, cfg.eta)
+        self.model: CDLModel | None = None
+        self.model_config = ""
+        self.weights_version = 0
+        self.graph_version = -1
+        n = spec.num_factors
+        self.parents = np.ones((n, n + 1), dtype=bool)
+        self.ensemble = BootstrapEnsemble(FactorLayout.from_spec(spec), cfg.ensemble_members, cfg.ensemble_hidden,
+                                          cfg.ensemble_lr, seed=cfg.seed) if self.reward.source == "ensemble" else None
+
+    def load_weights(self, weights: Weights) -> bool:
+        """Use newer weights (ValueError if they do not rebuild into a model for this EnvSpec)."""
+        if weights.version <= self.weights_version:
+            return False
+        if weights.config_json != self.model_config:
+            model = model_from_config_json(weights.config_json)
+            if model.layout.state_dim != self.spec.state_dim or model.num_outputs != self.spec.num_factors:
+                raise ValueError(f"weights v{weights.version} do not fit the EnvSpec")
+            self.model, self.model_config = model, weights.config_json
+        import_tensors(self.model, weights.tensors)
+        self.weights_version = weights.version
+        return True
+
+    def apply_graph(self, report: GraphReport) -> bool:
+        """Take PA(j) from the newest graph report; stale or misshapen reports are ignored."""
+        if report.weights_version < self.graph_version or report.adjacency.shape != self.parents.shape:
+            return False
+        self.graph_version = report.weights_version
+        self.parents = report.adjacency.astype(bool)
+        return True
+
+    def score(self, batch: TransitionBatch) -> ScoredBatch:
+        """The batch with its intrinsic rewards (ProtocolError if it does not fit the EnvSpec)."""
+        check_fits(self.spec, batch)
+        model = self.ensemble if self.ensemble is not None else self.model
+        if self.ensemble is not None and self.ensemble.size < self.cfg.ensemble_warmup:
+            model = None
+        if model is None:
+            rewards = np.zeros(len(batch), np.float32)
+        else:
+            rewards = score(self.reward, model, self.parents, batch.state, batch.action, batch.next_state)
+        if not np.isfinite(rewards).all():
+            raise ProtocolError("non_finite", f"intrinsic rewards of {batch.worker_id}/{batch.seq}")
+        version = self.ensemble.updates if self.ensemble is not None else self.weights_version
+        scored = ScoredBatch(transitions=batch, intrinsic_reward=rewards, reward_kind=self.reward.name,
+                             weights_version=version)
+        if self.ensemble is not None:
+            self._train_ensemble(batch)
+        return scored
+
+    def _train_ensemble(self, batch: TransitionBatch) -> None:
+        self.ensemble.add(batch.state, batch.action, batch.next_state)
+        for _ in range(self.cfg.ensemble_updates_per_batch):
+            self.ensemble.train_step(self.cfg.ensemble_batch_size)

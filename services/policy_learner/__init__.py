@@ -1,0 +1,1 @@
+"""policy-learner: trains PPO or SAC on streamed (scored) transitions and publishes versioned policy weights."""

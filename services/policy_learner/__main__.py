@@ -1,0 +1,3 @@
+from services.policy_learner.service import main
+
+main()

@@ -1,0 +1,57 @@
+"""policy-learner configuration."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from causal.rl import PPOConfig, SACConfig
+from services.runtime.config import ServiceConfig, doc
+
+ALGOS = ("ppo", "sac")
+
+
+@dataclass(frozen=True)
+class PolicyLearnerConfig(ServiceConfig):
+    """policy-learner: PPO (discrete or continuous actions) or SAC (continuous) behind one interface."""
+
+    algo: str = doc("ppo", "ppo or sac")
+    seed: int = doc(0, "seed of the policy initialisation and sampling")
+    scored: bool = doc(False, "learn from ScoredBatches (scored/*, with intrinsic rewards) instead of transitions/*")
+    extrinsic_coef: float = doc(1.0, "weight of the environment reward")
+    intrinsic_coef: float = doc(1.0, "weight of the intrinsic reward (scored batches only)")
+    max_policy_lag: int = doc(4, "drop batches produced by a policy more than this many versions old")
+    abstraction: bool = doc(True, "mask the policy input to the graph's abstraction (controllable + action-relevant)")
+    always_keep: str = doc(".goal_color", "factors whose name ends with this are never masked (provided task factors; '' none)")
+    hidden: int = doc(64, "width of the two hidden layers of every policy/value network")
+    lr: float = doc(3e-4, "Adam learning rate")
+    gamma: float = doc(0.99, "discount")
+    rollout_batches: int = doc(4, "PPO: transition batches (one per column) per update")
+    epochs: int = doc(4, "PPO: passes over each rollout")
+    minibatch_size: int = doc(64, "PPO: steps per minibatch")
+    clip: float = doc(0.2, "PPO: clip range of the surrogate ratio")
+    entropy_coef: float = doc(0.01, "PPO: entropy bonus")
+    replay_capacity: int = doc(100_000, "SAC: replay size")
+    warmup_steps: int = doc(1_000, "SAC: transitions before the first update")
+    batch_size: int = doc(256, "SAC: rows per update")
+    action_low: float = doc(-1.0, "continuous actions: lower bound of every dimension")
+    action_high: float = doc(1.0, "continuous actions: upper bound of every dimension")
+    publish_every_updates: int = doc(0, "updates between weight publications (0: PPO 1, SAC 100)")
+    checkpoint_every_s: float = doc(30.0, "seconds between checkpoints")
+    max_updates: int = doc(0, "stop after this many updates (0: never)")
+
+    def __post_init__(self) -> None:
+        if self.algo not in ALGOS:
+            raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
+        if self.max_policy_lag < 0:
+            raise ValueError("max_policy_lag must be >= 0")
+
+    def ppo(self) -> PPOConfig:
+        return PPOConfig(lr=self.lr, gamma=self.gamma, clip=self.clip, epochs=self.epochs,
+                         minibatch_size=self.minibatch_size, entropy_coef=self.entropy_coef,
+                         hidden=(self.hidden, self.hidden))
+
+    def sac(self) -> SACConfig:
+        return SACConfig(hidden=(self.hidden, self.hidden), lr=self.lr, gamma=self.gamma, batch_size=self.batch_size)
+
+    @property
+    def publish_every(self) -> int:
+        return self.publish_every_updates or (1 if self.algo == "ppo" else 100)

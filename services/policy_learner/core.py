@@ -1,0 +1,219 @@
+"""policy-learner core: policy-lag bound, PPO rollouts or SAC replay, abstraction mask, weights. No bus.
+
+Versions are *published* policy versions: version 1 is the initial policy, published at start, and
+each publication adds one. Version 0 marks data from the workers' random warm-up policy. A batch
+produced by version ``v`` has lag ``self.version - v``; more than ``max_policy_lag`` and it is dropped.
+
+PPO is on-policy: it needs the behaviour log-probabilities of the actions, which batches do not
+carry. The learner keeps the published policies still within the lag bound and recomputes them
+exactly with the version that produced the batch (random-policy data is dropped for PPO); the
+values are the current critic's, as in IMPALA-style actor-learners.
+"""
+from __future__ import annotations
+
+import copy
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from causal.abstraction import Abstraction
+from causal.factored import FactorLayout
+from causal.rl import ActionSpec, PPOAgent, RolloutBatch, SACAgent, UniformReplay, abstraction_input_mask
+from causal.rl.base import as_batch
+from causal.rl.ppo import ActorCritic
+from proto.codec import check_fits
+from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
+from services.policy_learner.config import PolicyLearnerConfig
+from services.policy_learner.policy_weights import MODEL, export_policy, policy_config_json
+from services.runtime.checkpoint import load_checkpoint, save_checkpoint
+
+DROP_REASONS = ("stale", "future", "random_policy", "unknown_policy")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What happened to one incoming batch: its policy lag, and why it was dropped ('' if used)."""
+
+    lag: int
+    dropped: str = ""
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """One batch ready for PPO: time-major columns for a RolloutBatch."""
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    log_probs: torch.Tensor
+    rewards: torch.Tensor
+    dones: torch.Tensor
+    truncated: torch.Tensor
+    next_obs: torch.Tensor
+
+
+def _stack(segments: list[_Segment], name: str) -> torch.Tensor:
+    """One field of every segment as the columns of a time-major ``[T, N, ...]`` tensor."""
+    return torch.stack([getattr(s, name) for s in segments], dim=1)
+
+
+def action_spec(spec: EnvSpec, cfg: PolicyLearnerConfig) -> ActionSpec:
+    if spec.action_kind == "categorical":
+        return ActionSpec("categorical", spec.action_size)
+    return ActionSpec("continuous", spec.action_size, (cfg.action_low,) * spec.action_size,
+                      (cfg.action_high,) * spec.action_size)
+
+
+class PolicyLearnerCore:
+    """Turns (scored) transition batches into policy updates and versioned policy weights."""
+
+    def __init__(self, cfg: PolicyLearnerConfig, spec: EnvSpec) -> None:
+        self.cfg, self.spec = cfg, spec
+        self.layout = FactorLayout.from_spec(spec)
+        self.action = action_spec(spec, cfg)
+        if cfg.algo == "ppo":
+            self.agent: PPOAgent | SACAgent = PPOAgent(spec.state_dim, self.action, cfg.ppo(), seed=cfg.seed)
+        else:
+            self.agent = SACAgent(spec.state_dim, self.action, cfg.sac(), seed=cfg.seed)
+        self.replay = UniformReplay(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
+        self.version = 0
+        self.behaviour: dict[int, ActorCritic] = {}
+        self.pending: list[_Segment] = []
+        self.updates = self.updates_since_publish = 0
+        self.env_steps = 0
+        self.dropped: Counter[str] = Counter()
+        self.graph_version = -1
+        self.kept_factors: tuple[int, ...] | None = None
+        self.last_stats: dict[str, float] = {}
+
+    def ingest(self, message: TransitionBatch | ScoredBatch) -> Verdict:
+        """Bound the policy lag, then queue (PPO) or store (SAC) the batch.
+
+        Raises ProtocolError('inconsistent') for a batch that does not fit the EnvSpec."""
+        batch, intrinsic = (message.transitions, message.intrinsic_reward) if isinstance(message, ScoredBatch) \
+            else (message, None)
+        check_fits(self.spec, batch)
+        lag = self.version - batch.policy_version
+        reason = self._drop_reason(batch.policy_version, lag)
+        if reason:
+            self.dropped[reason] += 1
+            return Verdict(lag, reason)
+        self.env_steps += len(batch)
+        reward = self.cfg.extrinsic_coef * batch.reward
+        if intrinsic is not None:
+            reward = reward + self.cfg.intrinsic_coef * intrinsic
+        if isinstance(self.agent, PPOAgent):
+            self.pending.append(self._segment(batch, reward.astype(np.float32)))
+        else:
+            self.replay.add(batch.state, batch.action, reward, batch.next_state, batch.terminated)
+        return Verdict(lag)
+
+    def _drop_reason(self, version: int, lag: int) -> str:
+        if lag < 0:
+            return "future"
+        if lag > self.cfg.max_policy_lag:
+            return "stale"
+        if isinstance(self.agent, PPOAgent) and version == 0:
+            return "random_policy"
+        if isinstance(self.agent, PPOAgent) and version not in self.behaviour:
+            return "unknown_policy"
+        return ""
+
+    @torch.no_grad()
+    def _segment(self, batch: TransitionBatch, reward: np.ndarray) -> _Segment:
+        obs = torch.from_numpy(batch.state)
+        net = self.behaviour[batch.policy_version]
+        actions = torch.from_numpy(batch.action)
+        actions = actions[:, 0].round().long() if self.action.kind == "categorical" else actions
+        return _Segment(obs, actions, net.distribution(obs).log_prob(actions), torch.from_numpy(reward),
+                        torch.from_numpy(batch.terminated | batch.truncated),
+                        torch.from_numpy(batch.truncated & ~batch.terminated), torch.from_numpy(batch.next_state))
+
+    @property
+    def ready(self) -> bool:
+        if isinstance(self.agent, PPOAgent):
+            return len(self.pending) >= self.cfg.rollout_batches
+        return len(self.replay) >= max(self.cfg.warmup_steps, self.cfg.batch_size)
+
+    def train_step(self) -> dict[str, float]:
+        """One PPO update on the pending rollout, or one SAC gradient step on the replay."""
+        if isinstance(self.agent, PPOAgent):
+            stats = self.agent.update(self._rollout())
+        else:
+            stats = self.agent.update(self.replay.sample(self.cfg.batch_size))
+        self.updates += 1
+        self.updates_since_publish += 1
+        self.last_stats = stats
+        return stats
+
+    @torch.no_grad()
+    def _rollout(self) -> RolloutBatch:
+        """Pending segments of the first segment's length as the columns of one RolloutBatch."""
+        steps = len(self.pending[0].rewards)
+        columns = [s for s in self.pending if len(s.rewards) == steps][: self.cfg.rollout_batches]
+        self.pending = [s for s in self.pending if all(s is not c for c in columns)]
+        obs, next_obs, truncated = (_stack(columns, name) for name in ("obs", "next_obs", "truncated"))
+        values = self.agent.net.value(obs)
+        bootstrap = self.agent.cfg.gamma * self.agent.net.value(next_obs) * truncated.float()
+        return RolloutBatch(obs, _stack(columns, "actions"), _stack(columns, "log_probs"), values,
+                            _stack(columns, "rewards") + bootstrap, _stack(columns, "dones"), next_obs[-1],
+                            policy_version=self.version)
+
+    @property
+    def publish_due(self) -> bool:
+        return self.updates_since_publish >= self.cfg.publish_every
+
+    def weights(self) -> Weights:
+        """Publish the current policy as the next version (and remember it as a behaviour policy)."""
+        self.version += 1
+        self.updates_since_publish = 0
+        if isinstance(self.agent, PPOAgent):
+            self.behaviour[self.version] = copy.deepcopy(self.agent.net).requires_grad_(False)
+            for old in [v for v in self.behaviour if v < self.version - self.cfg.max_policy_lag]:
+                del self.behaviour[old]
+        hidden = (self.cfg.hidden, self.cfg.hidden)
+        return Weights(model=MODEL, version=self.version, tensors=export_policy(self.agent),
+                       config_json=policy_config_json(self.cfg.algo, self.spec.state_dim, self.action, hidden),
+                       updates=self.updates, env_steps=self.env_steps)
+
+    def apply_graph(self, report: GraphReport) -> bool:
+        """Mask the policy input to the report's abstraction; True when the kept factors changed."""
+        if not self.cfg.abstraction or report.weights_version < self.graph_version \
+                or len(report.factor_names) != self.layout.num_factors:
+            return False
+        self.graph_version = report.weights_version
+        kept = set(Abstraction(report.controllable, report.action_relevant, report.action_irrelevant).kept)
+        suffix = self.cfg.always_keep
+        kept |= {j for j, name in enumerate(self.layout.names) if suffix and name.endswith(suffix)}
+        if tuple(sorted(kept)) == self.kept_factors:
+            return False
+        self.kept_factors = tuple(sorted(kept))
+        self.agent.set_input_mask(abstraction_input_mask(self.layout, self.kept_factors))
+        return True
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Actions of the current policy (for evaluation and tests)."""
+        return self.agent.act(as_batch(obs)[0].numpy())
+
+    def checkpoint(self, path: Path) -> None:
+        save_checkpoint({"agent": self.agent.state_dict(), "version": self.version, "updates": self.updates,
+                         "env_steps": self.env_steps, "replay": self.replay.state_dict()}, path)
+
+    def restore(self, path: Path) -> bool:
+        """Resume; the next publication continues the version sequence. PPO behaviour policies are
+        not saved, so batches of versions published before the restart are dropped ('unknown_policy')."""
+        saved = load_checkpoint(path)
+        if saved is None:
+            return False
+        self.agent.load_state_dict(saved["agent"])
+        self.replay.load_state_dict(saved["replay"])
+        self.version, self.updates = int(saved["version"]), int(saved["updates"])
+        self.env_steps = int(saved["env_steps"])
+        return True
+
+    def progress(self) -> dict[str, float]:
+        return {"policy_version": self.version, "updates": self.updates, "env_steps": self.env_steps,
+                "replay_size": len(self.replay), "pending_batches": len(self.pending),
+                **{f"dropped_{k}": v for k, v in self.dropped.items()}, **self.last_stats}

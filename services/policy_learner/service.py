@@ -1,0 +1,119 @@
+"""policy-learner service shell: the only policy-learner file that touches the bus."""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+
+from proto import topics
+from proto.codec import encode
+from proto.messages import GraphReport, ScoredBatch, TransitionBatch
+from services.bus.base import LatestValue, Transport
+from services.policy_learner.config import PolicyLearnerConfig
+from services.policy_learner.core import DROP_REASONS, PolicyLearnerCore, Verdict
+from services.policy_learner.policy_weights import MODEL
+from services.runtime.config import parse_config, write_config
+from services.runtime.shell import Inbox, ServiceShell, setup_logging
+
+SERVICE = "policy-learner"
+GRAPH_KIND = "cdl"
+log = logging.getLogger(SERVICE)
+
+
+class _Metrics:
+    def __init__(self, shell: ServiceShell) -> None:
+        m = shell.metrics
+        self.updates = m.counter("causeway_policy_updates", "Policy gradient updates (PPO: one per rollout)")
+        self.version = m.gauge("causeway_policy_version", "Version of the last published policy weights")
+        self.lag = m.histogram("causeway_policy_lag_versions", "Policy lag of each received batch, in versions",
+                               (0, 1, 2, 3, 4, 6, 8, 16, 32))
+        self.dropped = m.counter("causeway_policy_dropped", "Batches dropped by the learner, by reason", ("reason",))
+        for reason in DROP_REASONS:
+            self.dropped.labels(reason=reason)
+        self.update_seconds = m.histogram("causeway_policy_update_seconds", "Duration of one policy update",
+                                          (0.001, 0.005, 0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5))
+        self.weights_bytes = m.counter("causeway_policy_weights_bytes_published", "Bytes of policy weights published")
+
+    def observe(self, verdict: Verdict) -> None:
+        self.lag.observe(verdict.lag)
+        if verdict.dropped:
+            self.dropped.labels(reason=verdict.dropped).inc()
+
+
+def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
+    """Train on (scored) batches within the lag bound; publish every version (also to late queries)."""
+    shell = ServiceShell(SERVICE, cfg, transport)
+    metrics = _Metrics(shell)
+    source = shell.inbox("scored" if cfg.scored else "transitions", ScoredBatch if cfg.scored else TransitionBatch,
+                         maxsize=256)
+    graphs = shell.inbox("graph", GraphReport, maxsize=4)
+    shell.subscribe(topics.scored(cfg.run_id) if cfg.scored else topics.transitions(cfg.run_id), source)
+    shell.subscribe(topics.graph(cfg.run_id, GRAPH_KIND), graphs)
+    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, MODEL))
+    spec = shell.wait_for_spec()
+    if spec is None:
+        latest.close()
+        shell.close()
+        return
+    core = PolicyLearnerCore(cfg, spec)
+    ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
+    write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
+    if core.restore(ckpt):
+        log.info("resumed from %s at version %d", ckpt, core.version)
+    _publish(core, latest, metrics)
+    log.info("published policy v%d (%s, max lag %d)", core.version, cfg.algo, cfg.max_policy_lag)
+    last_ckpt = time.monotonic()
+    try:
+        while not shell.stopping.is_set():
+            shell.poll_control()
+            _drain(core, source, graphs, shell, metrics)
+            if shell.paused or not core.ready:
+                time.sleep(0.01)
+            else:
+                t0 = time.perf_counter()
+                core.train_step()
+                metrics.update_seconds.observe(time.perf_counter() - t0)
+                metrics.updates.inc()
+                if core.publish_due:
+                    _publish(core, latest, metrics)
+            now = time.monotonic()
+            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
+                core.checkpoint(ckpt)
+                shell.checkpoint_requested, last_ckpt = False, now
+            shell.beat(core.progress())
+            if cfg.max_updates and core.updates >= cfg.max_updates:
+                break
+    finally:
+        core.checkpoint(ckpt)
+        shell.beat(core.progress(), force=True)
+        latest.close()
+        shell.close()
+
+
+def _drain(core: PolicyLearnerCore, source: Inbox, graphs: Inbox, shell: ServiceShell, metrics: _Metrics) -> None:
+    for _, report in graphs.drain():
+        if core.apply_graph(report):
+            log.info("policy input masked to factors %s", core.kept_factors)
+    for _, message in source.drain():
+        verdict = shell.guarded(core.ingest, message)
+        if verdict is not None:
+            metrics.observe(verdict)
+
+
+def _publish(core: PolicyLearnerCore, latest: LatestValue, metrics: _Metrics) -> None:
+    payload = encode(core.weights())
+    latest.set(payload)
+    metrics.version.set(core.version)
+    metrics.weights_bytes.inc(len(payload))
+
+
+def main(argv: list[str] | None = None) -> None:
+    setup_logging(SERVICE)
+    import torch
+    torch.set_num_threads(1)
+    run(parse_config(PolicyLearnerConfig, argv))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,35 @@
+"""Run configuration of the policy services: --collector, --intrinsic and --task select what starts."""
+from __future__ import annotations
+
+import pytest
+
+from services.supervisor.config import RunConfig
+from services.supervisor.supervisor import MODULES, learning_services, resolve, service_configs
+
+
+def test_default_run_is_unchanged() -> None:
+    cfg = resolve(RunConfig(router_port=7447))
+    assert cfg.env == "chemical" and learning_services(cfg) == ("dynamics-learner", "graph-evaluator")
+    assert not service_configs(cfg, "tcp/x:1")["env-worker"].follow_policy
+
+
+def test_policy_run_starts_the_policy_services_and_workers_follow() -> None:
+    cfg = resolve(RunConfig(router_port=7447, collector="ppo", intrinsic="preddiff", task="match", abstraction=False,
+                            max_policy_lag=2, metrics_base_port=9100))
+    assert cfg.env == "chemical-match"
+    assert learning_services(cfg) == ("dynamics-learner", "graph-evaluator", "policy-learner", "intrinsic-reward")
+    configs = service_configs(cfg, "tcp/x:1")
+    policy, scorer, worker = configs["policy-learner"], configs["intrinsic-reward"], configs["env-worker"]
+    assert (policy.algo, policy.scored, policy.abstraction, policy.max_policy_lag) == ("ppo", True, False, 2)
+    assert (scorer.reward, policy.metrics_port, scorer.metrics_port) == ("preddiff", 9104, 9105)
+    assert worker.follow_policy and worker.env == "chemical-match"
+    assert set(learning_services(cfg)) <= set(MODULES)
+    plain = resolve(RunConfig(router_port=7447, collector="ppo"))
+    assert learning_services(plain)[-1] == "policy-learner" and not service_configs(plain, "x")["policy-learner"].scored
+
+
+@pytest.mark.parametrize("bad", [dict(collector="dqn"), dict(intrinsic="elden", collector="ppo"), dict(task="push"),
+                                 dict(intrinsic="preddiff"), dict(collector="sac", task="match")])
+def test_invalid_selections_are_refused(bad: dict) -> None:
+    with pytest.raises(ValueError):
+        resolve(RunConfig(router_port=7447, **bad))
