@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import tempfile
 import threading
 import time
 
@@ -49,7 +50,7 @@ class IngestCounter:
 
 def in_memory(seconds: float, workers: int) -> float:
     from services.supervisor.inprocess import InProcessStack
-    cfg = RunConfig(**RUN, workers=workers, run_dir="/tmp/causeway-bench-mem", run_id="bench-mem")
+    cfg = RunConfig(**RUN, workers=workers, run_dir=tempfile.mkdtemp(prefix="causeway-bench-mem-"), run_id="bench-mem")
     stack = InProcessStack(cfg, services=("dynamics-learner",), config_overrides={"dynamics-learner": LEARNER})
     counter = IngestCounter()
     stack.transport().subscribe(topics.stats(stack.cfg.run_id, "dynamics-learner"), counter)
@@ -63,7 +64,8 @@ def in_memory(seconds: float, workers: int) -> float:
 def over_zenoh(seconds: float, workers: int) -> float:
     from services.bus.zenoh_transport import ZenohTransport
     from services.supervisor.supervisor import MODULES, Supervisor, service_configs
-    cfg = RunConfig(**RUN, workers=workers, router_port=0, run_dir="/tmp/causeway-bench-zenoh", run_id="bench-zenoh")
+    cfg = RunConfig(**RUN, workers=workers, router_port=0, run_dir=tempfile.mkdtemp(prefix="causeway-bench-zenoh-"),
+                    run_id="bench-zenoh", dashboard_port=0)
     sup = Supervisor(cfg)
     sup.run_dir.mkdir(parents=True, exist_ok=True)
     from services.bus.router import start_router, wait_for_router

@@ -35,6 +35,9 @@ def _run(argv: list[str]) -> int:
     content = supervisor.run()
     print_summary(content)
     print(f"causeway: wrote {supervisor.run_dir / 'summary.json'}", file=sys.stderr)
+    if supervisor.failure:
+        print(f"causeway: error: {supervisor.failure}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -1,6 +1,7 @@
 """dynamics-learner core: replay + CDL trainer + weight export + checkpoints. No bus."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from causal.replay import ReplayBuffer, heldout_mask
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.dynamics_learner.config import DynamicsLearnerConfig
-from services.runtime.checkpoint import load_checkpoint, save_checkpoint
+from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
 MODEL = "cdl"
 
@@ -64,8 +65,14 @@ class DynamicsLearnerCore:
                        tensors=export_tensors(self.trainer.model), updates=self.trainer.updates,
                        env_steps=self.env_steps)
 
+    def fingerprint(self) -> str:
+        """What a checkpoint must match to be resumed: the environment and the model's architecture."""
+        return json.dumps({"env": self.spec.env_id, "env_config": json.loads(self.spec.config_json),
+                           "model": json.loads(model_config_json(self.layout, self.trainer.cfg))}, sort_keys=True)
+
     def checkpoint(self, path: Path) -> None:
-        save_checkpoint({"trainer": self.trainer.state_dict(), "replay": self.replay.state_dict(),
+        save_checkpoint({"fingerprint": self.fingerprint(), "trainer": self.trainer.state_dict(),
+                         "replay": self.replay.state_dict(),
                          "version": self.version, "env_steps": self.env_steps,
                          "graph_version": self.graph_version}, path)
 
@@ -73,6 +80,7 @@ class DynamicsLearnerCore:
         saved = load_checkpoint(path)
         if saved is None:
             return False
+        check_fingerprint(saved, self.fingerprint(), path)
         self.trainer.load_state_dict(saved["trainer"])
         self.replay.load_state_dict(saved["replay"])
         self.version, self.env_steps = int(saved["version"]), int(saved["env_steps"])

@@ -12,6 +12,7 @@ from proto.messages import GraphReport, TransitionBatch
 from services.bus.base import Transport
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import MODEL, DynamicsLearnerCore
+from services.runtime.checkpoint import CONFIG_ERROR_EXIT, CheckpointMismatch
 from services.runtime.config import parse_config, write_config
 from services.runtime.shell import ServiceShell, setup_logging
 
@@ -48,8 +49,13 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
     core = DynamicsLearnerCore(cfg, spec)
     ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
     write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
-    if core.restore(ckpt):
-        log.info("resumed from %s at update %d", ckpt, core.trainer.updates)
+    try:
+        if core.restore(ckpt):
+            log.info("resumed from %s at update %d", ckpt, core.trainer.updates)
+    except CheckpointMismatch as exc:
+        log.error("%s", exc)
+        shell.close()
+        sys.exit(CONFIG_ERROR_EXIT)
     last_publish = last_ckpt = time.monotonic()
     try:
         while not shell.stopping.is_set():
@@ -81,6 +87,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
         if core.trainer.updates:
             _publish(core, latest, metrics)
         core.checkpoint(ckpt)
+        log.info("stopped at update %d; checkpoint %s", core.trainer.updates, ckpt)
         shell.beat(core.progress(), force=True)
         latest.close()
         shell.close()

@@ -1,6 +1,7 @@
 """graph-evaluator core: held-out set, CMI with a moving average, graph, abstraction, scores. No bus."""
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from causal.replay import ReplayBuffer, heldout_mask
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
-from services.runtime.checkpoint import load_checkpoint, save_checkpoint
+from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
 
 class GraphEvaluatorCore:
@@ -81,8 +82,13 @@ class GraphEvaluatorCore:
                            action_irrelevant=abstraction.action_irrelevant, metrics=metrics,
                            true_graph=truth, num_heldout=num_heldout, timestamp=time.time())
 
+    def fingerprint(self) -> str:
+        """What a checkpoint must match to be resumed: the environment (held-out data is env-specific)."""
+        return json.dumps({"env": self.spec.env_id, "env_config": json.loads(self.spec.config_json)}, sort_keys=True)
+
     def checkpoint(self, path: Path) -> None:
-        state = {"heldout": self.heldout.state_dict(), "evaluated_version": self.evaluated_version}
+        state = {"fingerprint": self.fingerprint(), "heldout": self.heldout.state_dict(),
+                 "evaluated_version": self.evaluated_version}
         if self.cmi_ema is not None:
             state["cmi_ema"] = torch.from_numpy(self.cmi_ema)
         save_checkpoint(state, path)
@@ -91,6 +97,7 @@ class GraphEvaluatorCore:
         saved = load_checkpoint(path)
         if saved is None:
             return False
+        check_fingerprint(saved, self.fingerprint(), path)
         self.heldout.load_state_dict(saved["heldout"])
         self.evaluated_version = int(saved["evaluated_version"])
         if "cmi_ema" in saved:

@@ -12,6 +12,7 @@ from proto.messages import GraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
+from services.runtime.checkpoint import CONFIG_ERROR_EXIT, CheckpointMismatch
 from services.runtime.config import parse_config, write_config
 from services.runtime.shell import ServiceShell, setup_logging
 
@@ -66,8 +67,13 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
     core = GraphEvaluatorCore(cfg, spec, KIND)
     ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
     write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
-    if core.restore(ckpt):
-        log.info("resumed with %d held-out transitions", core.heldout.size)
+    try:
+        if core.restore(ckpt):
+            log.info("resumed with %d held-out transitions", core.heldout.size)
+    except CheckpointMismatch as exc:
+        log.error("%s", exc)
+        shell.close()
+        sys.exit(CONFIG_ERROR_EXIT)
     _catch_up(shell, core, cfg)
     last_eval, last_ckpt = 0.0, time.monotonic()
     try:
@@ -95,6 +101,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
             time.sleep(0.02)
     finally:
         core.checkpoint(ckpt)
+        log.info("stopped after %d reports; checkpoint %s", len(core.history), ckpt)
         latest_graph.close()
         shell.close()
 

@@ -1,12 +1,42 @@
 """Checkpoints: atomic writes, and loads that never unpickle arbitrary objects (weights_only=True)."""
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+
+CONFIG_ERROR_EXIT = 78
+"""Exit code (EX_CONFIG) of a service that must not be restarted as it is: the supervisor gives up."""
+
+
+class CheckpointMismatch(ValueError):
+    """The run directory holds a checkpoint made for another environment or model configuration."""
+
+
+def check_fingerprint(saved: dict[str, Any], fingerprint: str, path: Path) -> None:
+    """Refuse to resume from a checkpoint whose environment/model fingerprint (JSON) differs from ours."""
+    theirs = saved.get("fingerprint")
+    if theirs == fingerprint:
+        return
+    try:
+        old, new = _flatten(json.loads(theirs)), _flatten(json.loads(fingerprint))
+        changes = ", ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
+                            if old.get(k) != new.get(k))
+    except (TypeError, ValueError):
+        changes = "the checkpoint has no readable fingerprint"
+    raise CheckpointMismatch(f"{path} was written for a different environment or model configuration ({changes}); "
+                             "use a new --run-dir, or resume with the run's own config.json")
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        return {k: v for key, item in value.items() for k, v in _flatten(item, f"{prefix}{key}.").items()}
+    return {prefix.rstrip("."): value}
 
 
 def save_checkpoint(state: dict[str, Any], path: Path) -> None:

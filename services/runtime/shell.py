@@ -90,9 +90,13 @@ class ServiceShell:
         for target in (service, "all"):
             self._handles.append(transport.subscribe(topics.control(cfg.run_id, target), self._control.on_payload))
         self._handles.append(transport.declare_token(topics.alive(cfg.run_id, service, cfg.instance)))
+        if threading.current_thread() is threading.main_thread():
+            self.install_signal_handlers()
+        log.info("%s %s started (run %s, bus %s)", service, cfg.instance, cfg.run_id, cfg.zenoh_connect)
 
     def install_signal_handlers(self) -> None:
-        """SIGTERM/SIGINT ask the loop to stop cleanly (checkpoint, then exit)."""
+        """SIGTERM/SIGINT ask the loop to stop cleanly (checkpoint, then exit); done automatically
+        when the shell is built on the main thread (a service process), not in in-process threads."""
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stopping.set())
 

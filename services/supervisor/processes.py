@@ -10,7 +10,13 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.runtime.checkpoint import CONFIG_ERROR_EXIT
+
 log = logging.getLogger("supervisor")
+
+
+class FatalServiceError(RuntimeError):
+    """A service that restarting will not fix: the run stops and says why."""
 
 
 @dataclass
@@ -49,8 +55,10 @@ class ManagedProcess:
         if self.next_start == 0.0:
             code = self.process.returncode
             self.exit_codes.append(code)
+            if code == CONFIG_ERROR_EXIT:
+                raise FatalServiceError(f"{self.name} refused to start (configuration error); see {self.log_path}")
             if self.restarts >= self.max_restarts:
-                raise RuntimeError(f"{self.name} crashed {self.restarts + 1} times; last exit code {code}; see {self.log_path}")
+                raise FatalServiceError(f"{self.name} crashed {self.restarts + 1} times; last exit code {code}; see {self.log_path}")
             self.next_start = now + min(0.5 * 2 ** self.restarts, 10.0)
             log.warning("%s exited with %s; restarting", self.name, code)
         if now >= self.next_start:

@@ -32,7 +32,7 @@ from services.policy_learner.config import PolicyLearnerConfig
 from services.runtime.config import to_environ, write_config
 from services.supervisor import report as reporting
 from services.supervisor.config import COLLECTORS, INTRINSIC, TASKS, RunConfig
-from services.supervisor.processes import ManagedProcess, stop_all
+from services.supervisor.processes import FatalServiceError, ManagedProcess, stop_all
 from services.supervisor.progress import Progress
 
 log = logging.getLogger("supervisor")
@@ -126,6 +126,7 @@ class Supervisor:
         self.pending_scale: queue.Queue[str] = queue.Queue()
         self.retired: list[ManagedProcess] = []
         self.next_worker_index = 0
+        self.failure = ""
 
     @property
     def dashboard_url(self) -> str | None:
@@ -239,8 +240,12 @@ class Supervisor:
             while not self._stop.wait(0.2):
                 now = time.monotonic()
                 self._apply_scale_requests()
-                if any([proc.check(now) for proc in list(self.processes.values())]):
-                    self._write_process_table()
+                try:
+                    if any([proc.check(now) for proc in list(self.processes.values())]):
+                        self._write_process_table()
+                except FatalServiceError as exc:
+                    self.failure = str(exc)
+                    self.request_stop(f"failed: {exc}")
                 self.progress.show(self.restarts())
                 self._check_budget(now - started)
         finally:

@@ -1,0 +1,36 @@
+"""A run directory's checkpoint made for another configuration is refused with a clear error."""
+from __future__ import annotations
+
+import pytest
+
+from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.dynamics_learner.core import DynamicsLearnerCore
+from services.env_worker.config import EnvWorkerConfig
+from services.env_worker.core import EnvWorkerCore
+from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.graph_evaluator.core import GraphEvaluatorCore
+from services.runtime.checkpoint import CheckpointMismatch
+
+
+def spec(graph: str):
+    return EnvWorkerCore(EnvWorkerConfig(graph=graph, num_objects=3)).spec
+
+
+def test_learner_refuses_another_model_or_env(tmp_path) -> None:
+    path = tmp_path / "learner.pt"
+    small = DynamicsLearnerConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)
+    DynamicsLearnerCore(small, spec("chain")).checkpoint(path)
+    assert DynamicsLearnerCore(small, spec("chain")).restore(path)
+    with pytest.raises(CheckpointMismatch, match="different environment or model"):
+        DynamicsLearnerCore(DynamicsLearnerConfig(feature_hidden=16, feature_dim=8, predictor_hidden=8),
+                            spec("chain")).restore(path)
+    with pytest.raises(CheckpointMismatch):
+        DynamicsLearnerCore(small, spec("collider")).restore(path)
+
+
+def test_evaluator_refuses_another_env(tmp_path) -> None:
+    path = tmp_path / "evaluator.pt"
+    GraphEvaluatorCore(GraphEvaluatorConfig(), spec("chain")).checkpoint(path)
+    assert GraphEvaluatorCore(GraphEvaluatorConfig(), spec("chain")).restore(path)
+    with pytest.raises(CheckpointMismatch):
+        GraphEvaluatorCore(GraphEvaluatorConfig(), spec("full")).restore(path)
