@@ -77,20 +77,21 @@ class _MaxAndDropOne(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, feats: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        first, runner_up, is_max = max_and_runner_up(feats)
+        first = feats.amax(dim=1, keepdim=True)
+        is_max = feats == first
+        without_max = feats.masked_fill(is_max, float("-inf"))
+        runner_up = without_max.amax(dim=1, keepdim=True)
         dropped_is_max = is_max.gather(1, drop.expand(-1, -1, -1, feats.shape[-1]))
         dropped = torch.where(dropped_is_max, runner_up, first)
-        ctx.save_for_backward(feats, first, runner_up, dropped_is_max)
+        ctx.save_for_backward(is_max, without_max == runner_up, dropped_is_max)
         return first, dropped
 
     @staticmethod
     def backward(ctx, grad_first: torch.Tensor, grad_dropped: torch.Tensor) -> tuple[torch.Tensor, None]:
-        feats, first, runner_up, dropped_is_max = ctx.saved_tensors
-        to_max = grad_first + torch.where(dropped_is_max, 0.0, grad_dropped)
-        to_runner_up = torch.where(dropped_is_max, grad_dropped, 0.0)
-        grad = torch.where(feats == first, to_max, 0.0)
-        grad += torch.where(feats == runner_up, to_runner_up, 0.0)
-        return grad, None
+        is_max, is_runner_up, dropped_is_max = ctx.saved_tensors
+        to_max = grad_first + grad_dropped.masked_fill(dropped_is_max, 0.0)
+        to_runner_up = grad_dropped.masked_fill(~dropped_is_max, 0.0)
+        return torch.where(is_max, to_max, to_runner_up * is_runner_up), None
 
 
 def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
