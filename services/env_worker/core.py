@@ -35,6 +35,16 @@ class RandomPolicy:
         return np.atleast_1d(np.asarray(self.space.sample(), dtype=np.float32))
 
 
+def default_policy(env: str, action_space, seed: int):
+    """The collection policy before (or without) learned weights: uniformly random actions, except on
+    the manipulation scene, where random motor noise never reaches the cube and the chapter follows
+    Nasiriany et al. with skills (reach, grasp, push) picked uniformly with uniform parameters."""
+    if env == "manipulation":
+        from envs.skills import SkillPolicy
+        return SkillPolicy(action_space, seed)
+    return RandomPolicy(action_space, seed)
+
+
 class PolicyActor:
     """Acts with the newest policy weights loaded; ``version`` is theirs (0: none loaded yet).
 
@@ -82,7 +92,7 @@ class EnvWorkerCore:
         self.env = make_env(cfg.env, **env_kwargs(cfg))
         self.spec: EnvSpec = self.env.unwrapped.env_spec()
         seed = cfg.seed + cfg.worker_index
-        self.random_policy = RandomPolicy(self.env.action_space, seed)
+        self.random_policy = default_policy(cfg.env, self.env.action_space, seed)
         self.actor = PolicyActor(self.spec.state_dim, seed)
         self.observation, _ = self.env.reset(seed=seed)
         self.episode, self.step_in_episode = 0, 0

@@ -99,6 +99,38 @@ def _heatmap(ax, matrix: np.ndarray, cmap: str | None, title: str, cols: list[st
     ax.set_ylabel("effect (factor at t+1)")
 
 
+def object_level(adjacency: np.ndarray, names: tuple[str, ...]) -> tuple[np.ndarray, list[str]]:
+    """Collapse a factor graph to objects (the name before the first '.'): an object edge exists when
+    any factor of one object depends on any factor of the other (Figure 3.5, right). The action is
+    kept as the last column."""
+    objects = list(dict.fromkeys(n.split(".", 1)[0] for n in names))
+    group = np.array([objects.index(n.split(".", 1)[0]) for n in names])
+    out = np.zeros((len(objects), len(objects) + 1), dtype=np.uint8)
+    for j, i in zip(*np.nonzero(adjacency)):
+        col = len(objects) if i == len(names) else group[i]
+        out[group[j], col] = 1
+    return out, objects
+
+
+def plot_object_graphs(report: GraphReport, path: Path) -> None:
+    """Learned and true object-level graphs side by side (self-dependencies of objects are shown)."""
+    learned, objects = object_level(report.adjacency, report.factor_names)
+    panels = [("learned (object level)", learned)]
+    if report.true_graph is not None:
+        panels.append(("ground truth (object level)", object_level(report.true_graph, report.factor_names)[0]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 4.2), squeeze=False)
+    for ax, (title, matrix) in zip(axes[0], panels):
+        ax.imshow(matrix, cmap="Greys", vmin=0, vmax=1.4, interpolation="nearest")
+        ax.set_xticks(range(len(objects) + 1), objects + ["action"], rotation=90)
+        ax.set_yticks(range(len(objects)), objects)
+        ax.set_title(title)
+        ax.set_xlabel("cause (t)")
+        ax.set_ylabel("effect (t+1)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
     """Graph scores against env steps over the run."""
     if not history:

@@ -291,7 +291,7 @@ class Supervisor:
         cfg = self.cfg
         with self._lock:
             report, history = self.last_report, list(self.history)
-        base = {"run_id": cfg.run_id, "env": cfg.env, "graph": cfg.graph, "num_objects": cfg.num_objects,
+        base = {"run_id": cfg.run_id, "env": cfg.env, "graph": cfg.graph if cfg.env.startswith("chemical") else None, "num_objects": cfg.num_objects,
                 "seed": cfg.seed, "workers": cfg.workers, "env_steps": self.progress.env_steps(),
                 "updates": self.progress.updates(), "wall_seconds": round(wall_seconds, 1),
                 "stopped_because": self.stop_reason or "stopped", "restarts": self.restarts(),
@@ -300,6 +300,7 @@ class Supervisor:
         reporting.write_summary(self.run_dir / "summary.json", content)
         if report is not None:
             reporting.plot_graphs(report, self.run_dir / "graph.png")
+            reporting.plot_object_graphs(report, self.run_dir / "object_graph.png")
             reporting.plot_learning_curve(history, self.run_dir / "learning_curve.png")
         return content
 

@@ -49,3 +49,15 @@ def test_progress_totals_survive_a_restarted_counter() -> None:
         p.on_stats(ServiceStats("env-worker", "0", {"env_steps": steps}))
     p.on_stats(ServiceStats("env-worker", "1", {"env_steps": 20.0}))
     assert p.env_steps() == 300 + 80 + 20
+
+
+def test_object_level_graph_collapses_factors() -> None:
+    import numpy as np
+
+    from services.supervisor.report import object_level
+
+    names = ("a.x", "a.y", "b.x")
+    adjacency = np.array([[1, 0, 0, 1], [0, 1, 1, 0], [0, 0, 1, 0]], dtype=np.uint8)
+    graph, objects = object_level(adjacency, names)
+    assert objects == ["a", "b"]
+    assert graph.tolist() == [[1, 1, 1], [0, 1, 0]]
