@@ -31,8 +31,10 @@ sysdeps:
 	  else echo "warning: missing$$missing (tests that need them will be skipped)"; fi; \
 	fi
 
+# The main job: CDL on Chemical (10 objects, full graph) until the paper's F1 (0.95 at the best
+# threshold, as Table 3.1 reports it) or 15 minutes; ARGS overrides any flag.
 run: $(STAMP)
-	$(PY) -m services.cli run $(ARGS)
+	$(PY) -m services.cli run --target-f1 0.95 --target-metric best_threshold_f1 $(ARGS)
 
 test: $(STAMP) sysdeps
 	$(PY) -m pytest -q
