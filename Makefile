@@ -52,7 +52,7 @@ bench-f1: $(STAMP)
 	$(PY) -m benchmarks.bench_time_to_f1 $(ARGS)
 
 lint: $(STAMP)
-	$(PY) -m compileall -q services proto envs causal benchmarks tests
+	$(PY) -m pyflakes services proto envs causal benchmarks
 
 up:
 	docker compose up -d --build

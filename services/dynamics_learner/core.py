@@ -4,7 +4,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 
 from causal.cdl import export_tensors, model_config_json
 from causal.cdl_trainer import CDLTrainer

@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from pathlib import Path
 
 from proto import topics
 from proto.codec import encode
@@ -12,9 +11,7 @@ from proto.messages import GraphReport, TransitionBatch
 from services.bus.base import Transport
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import MODEL, DynamicsLearnerCore
-from services.runtime.checkpoint import CONFIG_ERROR_EXIT, CheckpointMismatch
-from services.runtime.config import parse_config, write_config
-from services.runtime.shell import ServiceShell, setup_logging
+from services.runtime.shell import ServiceShell, service_main
 
 SERVICE = "dynamics-learner"
 log = logging.getLogger(SERVICE)
@@ -47,15 +44,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
         shell.close()
         return
     core = DynamicsLearnerCore(cfg, spec)
-    ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
-    write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
-    try:
-        if core.restore(ckpt):
-            log.info("resumed from %s at update %d", ckpt, core.trainer.updates)
-    except CheckpointMismatch as exc:
-        log.error("%s", exc)
-        shell.close()
-        sys.exit(CONFIG_ERROR_EXIT)
+    ckpt = shell.resume(core)
     last_publish = last_ckpt = time.monotonic()
     try:
         while not shell.stopping.is_set():
@@ -108,10 +97,7 @@ def _publish(core: DynamicsLearnerCore, latest, metrics: _Metrics) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    setup_logging(SERVICE)
-    import torch
-    torch.set_num_threads(1)
-    run(parse_config(DynamicsLearnerConfig, argv))
+    service_main(SERVICE, DynamicsLearnerConfig, run, argv)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from pathlib import Path
 
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
@@ -12,9 +11,7 @@ from proto.messages import GraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
-from services.runtime.checkpoint import CONFIG_ERROR_EXIT, CheckpointMismatch
-from services.runtime.config import parse_config, write_config
-from services.runtime.shell import ServiceShell, setup_logging
+from services.runtime.shell import ServiceShell, service_main
 
 SERVICE = "graph-evaluator"
 KIND = "cdl"
@@ -65,15 +62,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
         shell.close()
         return
     core = GraphEvaluatorCore(cfg, spec, KIND)
-    ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
-    write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
-    try:
-        if core.restore(ckpt):
-            log.info("resumed with %d held-out transitions", core.heldout.size)
-    except CheckpointMismatch as exc:
-        log.error("%s", exc)
-        shell.close()
-        sys.exit(CONFIG_ERROR_EXIT)
+    ckpt = shell.resume(core)
     _catch_up(shell, core, cfg)
     last_eval, last_ckpt = 0.0, time.monotonic()
     try:
@@ -124,10 +113,7 @@ def _load(core: GraphEvaluatorCore, w: Weights, shell: ServiceShell) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    setup_logging(SERVICE)
-    import torch
-    torch.set_num_threads(1)
-    run(parse_config(GraphEvaluatorConfig, argv))
+    service_main(SERVICE, GraphEvaluatorConfig, run, argv)
 
 
 if __name__ == "__main__":

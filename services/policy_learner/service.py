@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from pathlib import Path
 
 from proto import topics
 from proto.codec import encode
@@ -13,8 +12,7 @@ from services.bus.base import LatestValue, Transport
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import DROP_REASONS, PolicyLearnerCore, Verdict
 from services.policy_learner.policy_weights import MODEL
-from services.runtime.config import parse_config, write_config
-from services.runtime.shell import Inbox, ServiceShell, setup_logging
+from services.runtime.shell import Inbox, ServiceShell, service_main
 
 SERVICE = "policy-learner"
 GRAPH_KIND = "cdl"
@@ -57,10 +55,7 @@ def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
         shell.close()
         return
     core = PolicyLearnerCore(cfg, spec)
-    ckpt = Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.pt"
-    write_config(cfg, Path(cfg.run_dir) / "config" / f"{SERVICE}-{cfg.instance}.json")
-    if core.restore(ckpt):
-        log.info("resumed from %s at version %d", ckpt, core.version)
+    ckpt = shell.resume(core)
     _publish(core, latest, metrics)
     log.info("published policy v%d (%s, max lag %d)", core.version, cfg.algo, cfg.max_policy_lag)
     last_ckpt = time.monotonic()
@@ -109,10 +104,7 @@ def _publish(core: PolicyLearnerCore, latest: LatestValue, metrics: _Metrics) ->
 
 
 def main(argv: list[str] | None = None) -> None:
-    setup_logging(SERVICE)
-    import torch
-    torch.set_num_threads(1)
-    run(parse_config(PolicyLearnerConfig, argv))
+    service_main(SERVICE, PolicyLearnerConfig, run, argv)
 
 
 if __name__ == "__main__":

@@ -8,15 +8,18 @@ from __future__ import annotations
 import logging
 import queue
 import signal
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
 from proto.messages import Control, EnvSpec, ServiceStats
 from services.bus.base import Transport
-from services.runtime.config import ServiceConfig
+from services.runtime.checkpoint import CONFIG_ERROR_EXIT, CheckpointMismatch
+from services.runtime.config import ServiceConfig, parse_config, write_config
 from services.runtime.metrics import ServiceMetrics
 
 log = logging.getLogger(__name__)
@@ -111,6 +114,30 @@ class ServiceShell:
         self.transport.publish(key, payload, reliable=reliable)
         return len(payload)
 
+    @property
+    def checkpoint_path(self) -> Path:
+        return Path(self.cfg.run_dir) / "checkpoints" / f"{self.service}-{self.cfg.instance}.pt"
+
+    def write_effective_config(self) -> None:
+        """The service's effective configuration into <run_dir>/config/<service>-<instance>.json."""
+        write_config(self.cfg, Path(self.cfg.run_dir) / "config" / f"{self.service}-{self.cfg.instance}.json")
+
+    def resume(self, core: Any) -> Path:
+        """Write the effective config and restore ``core`` from this service's checkpoint, if any.
+
+        A checkpoint made for another environment or model is a configuration error, not a crash:
+        the process exits with CONFIG_ERROR_EXIT, which the supervisor does not restart."""
+        self.write_effective_config()
+        path = self.checkpoint_path
+        try:
+            if core.restore(path):
+                log.info("%s resumed from %s", self.service, path)
+        except CheckpointMismatch as exc:
+            log.error("%s", exc)
+            self.close()
+            sys.exit(CONFIG_ERROR_EXIT)
+        return path
+
     def guarded(self, apply: Callable[[Any], Any], message: Any) -> Any:
         """``apply(message)``; a ProtocolError (the message does not fit this run) is counted and dropped."""
         try:
@@ -167,3 +194,11 @@ class ServiceShell:
 
 def setup_logging(service: str) -> None:
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {service} %(levelname)s %(name)s: %(message)s")
+
+
+def service_main(service: str, config_cls: type, run: Callable[[Any], None], argv: list[str] | None) -> None:
+    """The entry point of every service process: logging, one torch thread, config from env and flags."""
+    setup_logging(service)
+    import torch
+    torch.set_num_threads(1)
+    run(parse_config(config_cls, argv))
