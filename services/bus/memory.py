@@ -25,6 +25,7 @@ import threading
 from collections import Counter
 from typing import Any, Callable
 
+from services.bus.handles import HandleRegistry
 from services.bus.base import Callback, Handle, LatestValue, LivelinessCallback
 
 logger = logging.getLogger(__name__)
@@ -171,24 +172,6 @@ class InMemoryBus:
             watcher.deliver(key, alive)
 
 
-class _MemoryHandle:
-    """Closes once: runs ``undeclare`` and forgets itself in the owning transport."""
-
-    def __init__(self, undeclare: Callable[[], None], owner: InMemoryTransport) -> None:
-        self._undeclare = undeclare
-        self._owner = owner
-        self._closed = False
-        self._lock = threading.Lock()
-
-    def close(self) -> None:
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._undeclare()
-        self._owner._forget(self)
-
-
 class _MemoryLatest:
     """The latest value served on ``key``; ``set`` stores it and publishes it."""
 
@@ -209,14 +192,12 @@ class _MemoryLatest:
             self._handle.close()
 
 
-class InMemoryTransport:
+class InMemoryTransport(HandleRegistry):
     """A ``Transport`` for one simulated service, attached to a shared ``InMemoryBus``."""
 
     def __init__(self, bus: InMemoryBus | None = None) -> None:
         self.bus = bus if bus is not None else InMemoryBus()
-        self._handles: set[_MemoryHandle] = set()
-        self._lock = threading.Lock()
-        self._closed = False
+        super().__init__()
 
     def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
         """Deliver ``payload`` to every matching subscriber now, on this thread (``reliable`` is moot)."""
@@ -276,21 +257,3 @@ class InMemoryTransport:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    def _track(self, undeclare: Callable[[], None]) -> _MemoryHandle:
-        handle = _MemoryHandle(undeclare, self)
-        with self._lock:
-            closed = self._closed
-            if not closed:
-                self._handles.add(handle)
-        if closed:
-            handle.close()
-            raise RuntimeError("transport is closed")
-        return handle
-
-    def _forget(self, handle: _MemoryHandle) -> None:
-        with self._lock:
-            self._handles.discard(handle)
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise RuntimeError("transport is closed")

@@ -41,6 +41,7 @@ from typing import Any, Callable, Protocol
 
 import zenoh
 
+from services.bus.handles import HandleRegistry, OnceHandle
 from services.bus.base import Callback, Handle, LatestValue, LivelinessCallback
 from services.bus.router import client_config
 
@@ -76,24 +77,6 @@ def _guarded(what: str, function: Callable[[Any], None]) -> Callable[[Any], None
             logger.exception("callback for %s raised; message dropped", what)
 
     return guarded
-
-
-class _ZenohHandle:
-    """A declared Zenoh entity that undeclares once and leaves its transport's registry."""
-
-    def __init__(self, entity: _Undeclarable, owner: ZenohTransport) -> None:
-        self._entity = entity
-        self._owner = owner
-        self._closed = False
-        self._lock = threading.Lock()
-
-    def close(self) -> None:
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._entity.undeclare()
-        self._owner._forget(self)
 
 
 class _TokenTransitions:
@@ -140,7 +123,7 @@ class _ZenohLatest:
             self._handle.close()
 
 
-class ZenohTransport:
+class ZenohTransport(HandleRegistry):
     """A ``Transport`` on a Zenoh client session connected to the router at ``connect``.
 
     Opening fails with ``zenoh.ZError`` when no router answers; call ``wait_for_router`` first
@@ -152,9 +135,7 @@ class ZenohTransport:
         self.connect = connect
         self._session = zenoh.open(client_config(connect))
         self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
-        self._handles: set[_ZenohHandle] = set()
-        self._lock = threading.Lock()
-        self._closed = False
+        super().__init__()
         with _open_lock:
             _open_transports.add(self)
 
@@ -175,14 +156,14 @@ class ZenohTransport:
 
         self._check_open()
         handler = _guarded(f"subscriber {key_expr!r}", on_sample)
-        return self._track(self._session.declare_subscriber(key_expr, handler))
+        return self._track_entity(self._session.declare_subscriber(key_expr, handler))
 
     def serve_latest(self, key: str) -> LatestValue:
         """Declare a queryable on ``key`` answering with the value last set on the returned object."""
         self._check_open()
         latest = _ZenohLatest(key, self)
         handler = _guarded(f"queryable {key!r}", latest.answer)
-        latest._handle = self._track(self._session.declare_queryable(key, handler))
+        latest._handle = self._track_entity(self._session.declare_queryable(key, handler))
         return latest
 
     def query(self, key_expr: str, timeout: float = 1.0) -> list[tuple[str, bytes]]:
@@ -199,7 +180,7 @@ class ZenohTransport:
     def declare_token(self, key: str) -> Handle:
         """Declare a liveliness token on ``key``; it dies with the handle, the session or the process."""
         self._check_open()
-        return self._track(self._session.liveliness().declare_token(key))
+        return self._track_entity(self._session.liveliness().declare_token(key))
 
     def watch_liveliness(self, key_expr: str, callback: LivelinessCallback) -> Handle:
         """Report tokens matching ``key_expr``: alive now first (history), then PUT->True, DELETE->False.
@@ -216,7 +197,7 @@ class ZenohTransport:
         self._check_open()
         handler = _guarded(f"liveliness watcher {key_expr!r}", on_sample)
         liveliness = self._session.liveliness()
-        return self._track(liveliness.declare_subscriber(key_expr, handler, history=True))
+        return self._track_entity(liveliness.declare_subscriber(key_expr, handler, history=True))
 
     def alive(self, key_expr: str, timeout: float = 1.0) -> list[str]:
         """Sorted keys of the liveliness tokens matching ``key_expr`` now."""
@@ -257,21 +238,5 @@ class ZenohTransport:
                 self._publishers[(key, reliable)] = publisher
             return publisher
 
-    def _track(self, entity: _Undeclarable) -> _ZenohHandle:
-        handle = _ZenohHandle(entity, self)
-        with self._lock:
-            closed = self._closed
-            if not closed:
-                self._handles.add(handle)
-        if closed:
-            handle.close()
-            raise RuntimeError("transport is closed")
-        return handle
-
-    def _forget(self, handle: _ZenohHandle) -> None:
-        with self._lock:
-            self._handles.discard(handle)
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise RuntimeError("transport is closed")
+    def _track_entity(self, entity: _Undeclarable) -> OnceHandle:
+        return self._track(entity.undeclare)

@@ -6,7 +6,6 @@ import sys
 import time
 
 from proto import topics
-from proto.codec import encode
 from proto.messages import GraphReport, TransitionBatch
 from services.bus.base import Transport
 from services.dynamics_learner.config import DynamicsLearnerConfig
@@ -61,7 +60,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
                     metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
             now = time.monotonic()
             if core.ready and now - last_publish >= cfg.publish_every_s:
-                _publish(core, latest, metrics)
+                _publish(shell, core, latest, metrics)
                 last_publish = now
             if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
                 core.checkpoint(ckpt)
@@ -74,7 +73,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
                 break
     finally:
         if core.trainer.updates:
-            _publish(core, latest, metrics)
+            _publish(shell, core, latest, metrics)
         core.checkpoint(ckpt)
         log.info("stopped at update %d; checkpoint %s", core.trainer.updates, ckpt)
         shell.beat(core.progress(), force=True)
@@ -89,11 +88,9 @@ def _drain(core: DynamicsLearnerCore, transitions, graphs, shell: ServiceShell) 
         core.apply_graph(report)
 
 
-def _publish(core: DynamicsLearnerCore, latest, metrics: _Metrics) -> None:
-    payload = encode(core.weights())
-    latest.set(payload)
+def _publish(shell: ServiceShell, core, latest, metrics: _Metrics) -> None:
+    metrics.weights_bytes.inc(shell.set_latest(latest, core.weights()))
     metrics.version.set(core.version)
-    metrics.weights_bytes.inc(len(payload))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -6,9 +6,8 @@ import sys
 import time
 
 from proto import topics
-from proto.codec import encode
 from proto.messages import GraphReport, ScoredBatch, TransitionBatch
-from services.bus.base import LatestValue, Transport
+from services.bus.base import Transport
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import DROP_REASONS, PolicyLearnerCore, Verdict
 from services.policy_learner.policy_weights import MODEL
@@ -56,7 +55,7 @@ def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
         return
     core = PolicyLearnerCore(cfg, spec)
     ckpt = shell.resume(core)
-    _publish(core, latest, metrics)
+    _publish(shell, core, latest, metrics)
     log.info("published policy v%d (%s, max lag %d)", core.version, cfg.algo, cfg.max_policy_lag)
     last_ckpt = time.monotonic()
     try:
@@ -71,7 +70,7 @@ def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
                 metrics.update_seconds.observe(time.perf_counter() - t0)
                 metrics.updates.inc()
                 if core.publish_due:
-                    _publish(core, latest, metrics)
+                    _publish(shell, core, latest, metrics)
             now = time.monotonic()
             if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
                 core.checkpoint(ckpt)
@@ -96,11 +95,9 @@ def _drain(core: PolicyLearnerCore, source: Inbox, graphs: Inbox, shell: Service
             metrics.observe(verdict)
 
 
-def _publish(core: PolicyLearnerCore, latest: LatestValue, metrics: _Metrics) -> None:
-    payload = encode(core.weights())
-    latest.set(payload)
+def _publish(shell: ServiceShell, core, latest, metrics: _Metrics) -> None:
+    metrics.weights_bytes.inc(shell.set_latest(latest, core.weights()))
     metrics.version.set(core.version)
-    metrics.weights_bytes.inc(len(payload))
 
 
 def main(argv: list[str] | None = None) -> None:

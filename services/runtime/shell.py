@@ -147,6 +147,12 @@ class ServiceShell:
             log.warning("rejected %s: %s", type(message).__name__, exc)
             return None
 
+    def set_latest(self, latest: Any, message: Any) -> int:
+        """Encode ``message`` into a ``serve_latest`` value (which also publishes it); returns its size."""
+        payload = encode(message)
+        latest.set(payload)
+        return len(payload)
+
     def poll_control(self) -> None:
         """Apply pending control commands to the shell's flags."""
         for _, command in self._control.drain():
