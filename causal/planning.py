@@ -109,11 +109,8 @@ class CEMPlanner:
 
 def cdl_outputs(model: CDLModel, state: torch.Tensor, action: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
     """Raw head outputs ``[d_S, B, head_width]`` with each factor's inputs masked to ``parents``
-    (``[d_S, d_S + 1]`` bool, graph column order, action last)."""
-    feats = model.features(state, action)
-    keep = model.to_group_order(parents.to(torch.bool))
-    aggregated = feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True)
-    return model.predict(aggregated)[:, 0]
+    (``[d_S, d_S + 1]`` bool, graph column order, action last); only the parents' feature networks run."""
+    return model.masked_outputs(state, action, parents)
 
 
 def next_state_from_outputs(codec: FactorCodec, out: torch.Tensor, state: torch.Tensor, sample: bool = False,

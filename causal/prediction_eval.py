@@ -62,18 +62,20 @@ def _random_episode(env: ChemicalEnv, rng: np.random.Generator, seed: int) -> tu
 
 
 @torch.no_grad()
-def k_step_accuracy(step_fn: StepFn, data: PredictionData, columns: Sequence[int]) -> np.ndarray:
-    """Mean accuracy ``[k]`` of the predicted categorical ``columns`` after 1..k model steps."""
-    states = torch.from_numpy(data.states.astype(np.float32))
-    actions = torch.from_numpy(data.actions)
+def k_step_accuracy(step_fn: StepFn, data: PredictionData, columns: Sequence[int], chunk: int = 512) -> np.ndarray:
+    """Mean accuracy ``[k]`` of the predicted categorical ``columns`` after 1..k model steps.
+
+    Start states are rolled out ``chunk`` at a time (CDL's feature tensor grows with the batch)."""
     cols = torch.as_tensor(list(columns), dtype=torch.long)
-    predicted = states[:, 0]
-    accuracy = np.zeros(data.max_steps)
-    for k in range(data.max_steps):
-        predicted = step_fn(predicted, actions[:, k])
-        hits = predicted[:, cols].round() == states[:, k + 1, cols]
-        accuracy[k] = hits.float().mean().item()
-    return accuracy
+    hits = np.zeros(data.max_steps)
+    for start in range(0, len(data.states), chunk):
+        states = torch.from_numpy(data.states[start : start + chunk].astype(np.float32))
+        actions = torch.from_numpy(data.actions[start : start + chunk])
+        predicted = states[:, 0]
+        for k in range(data.max_steps):
+            predicted = step_fn(predicted, actions[:, k])
+            hits[k] += (predicted[:, cols].round() == states[:, k + 1, cols]).sum().item()
+    return hits / (len(data.states) * len(cols))
 
 
 def chemical_color_columns(env: ChemicalEnv) -> list[int]:
@@ -82,18 +84,20 @@ def chemical_color_columns(env: ChemicalEnv) -> list[int]:
 
 
 def evaluate_chemical_prediction(step_fn: StepFn, env_kwargs: dict[str, Any], noise_scales: Sequence[float] = (),
-                                 num_starts: int = 5000, max_steps: int = 5, seed: int = 0) -> dict[str, np.ndarray]:
+                                 num_starts: int = 5000, max_steps: int = 5, seed: int = 0,
+                                 env_cls: type[ChemicalEnv] = ChemicalEnv) -> dict[str, np.ndarray]:
     """k-step colour accuracy on ID states (``"id"``) and OOD states for each noise scale sigma
     (``"ood_<sigma>"``), each from ``num_starts`` windows (the chapter uses 5K transitions).
 
     ``env_kwargs`` builds the training environment (same graph, tables and sizes for all); OOD
-    environments add ``ood_noise_scale=sigma``.
+    environments add ``ood_noise_scale=sigma``. ``env_cls`` may be a Chemical subclass whose
+    observation appends factors (``ChemicalMatchEnv``'s goals) when the model was trained on it.
     """
     settings: dict[str, dict[str, Any]] = {"id": dict(env_kwargs, ood_noise_scale=None)}
     settings.update({f"ood_{sigma:g}": dict(env_kwargs, ood_noise_scale=sigma) for sigma in noise_scales})
     results = {}
     for name, kwargs in settings.items():
-        env = ChemicalEnv(**kwargs)
+        env = env_cls(**kwargs)
         data = chemical_prediction_data(env, num_starts, max_steps, seed)
         results[name] = k_step_accuracy(step_fn, data, chemical_color_columns(env))
     return results

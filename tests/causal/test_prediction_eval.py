@@ -42,7 +42,7 @@ def test_cdl_with_its_causal_mask_predicts_ood_states_as_well_as_id_states() -> 
     data = chemical_prediction_data(env, num_starts=2000, max_steps=1, seed=1)
     s, a, n = (torch.from_numpy(x) for x in (data.states[:, 0], data.actions[:, 0], data.states[:, 1]))
     rng = np.random.default_rng(0)
-    for _ in range(150):
+    for _ in range(400):
         index = torch.from_numpy(rng.integers(0, len(s), 64))
         trainer.update(s[index], a[index], n[index])
     cdl = cdl_rollout_step(trainer.model, torch.from_numpy(env.global_graph.astype(bool)))
@@ -50,7 +50,7 @@ def test_cdl_with_its_causal_mask_predicts_ood_states_as_well_as_id_states() -> 
     assert set(results) == {"id", "ood_1", "ood_100"}
     assert results["id"].shape == (5,) and np.all((results["id"] >= 0) & (results["id"] <= 1))
     np.testing.assert_array_equal(results["ood_100"], results["id"])
-    assert results["id"][0] > 0.6
+    assert results["id"][0] > 0.8, results["id"]
     dense = MonolithicModel(layout, 32, cfg=cfg)
     dense_results = evaluate_chemical_prediction(dense_rollout_step(dense), ENV, (100.0,), num_starts=300, seed=2)
     assert not np.array_equal(dense_results["ood_100"], dense_results["id"])
