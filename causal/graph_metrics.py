@@ -4,8 +4,15 @@ Scores cover every entry of the ``d_S x (d_S + 1)`` graph except the diagonal: s
 assumed (Assumption 4) and always kept, so counting them would only inflate every metric.
 The chapter selects the best threshold by a linear search on F1; we report the working threshold
 and that best threshold side by side.
+
+*Identifiable* scores (:func:`score_graph` with ``constant_factors``) also leave out the columns of
+factors that are constant in the environment by construction (the manipulation scene's ``z`` of
+``unm``, ``rand`` and the markers): a cause that never varies carries no information, so no
+learner can find its edges from the environment's data, and they cap recall whatever the learner.
 """
 from __future__ import annotations
+
+from typing import Sequence
 
 import numpy as np
 
@@ -18,15 +25,24 @@ def scored_entries(shape: tuple[int, int]) -> np.ndarray:
     return mask
 
 
-def confusion(predicted: np.ndarray, truth: np.ndarray) -> dict[str, int]:
-    mask = scored_entries(truth.shape)
+def identifiable_entries(shape: tuple[int, int], constant_factors: Sequence[int]) -> np.ndarray:
+    """The scored entries whose cause can vary: all but the self-edges and the columns of
+    ``constant_factors`` (factor indices; the action column is never constant)."""
+    mask = scored_entries(shape)
+    mask[:, list(constant_factors)] = False
+    return mask
+
+
+def confusion(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> dict[str, int]:
+    """Counts over the entries of ``mask`` (default :func:`scored_entries`)."""
+    mask = scored_entries(truth.shape) if mask is None else mask
     p, t = predicted.astype(bool)[mask], truth.astype(bool)[mask]
     return {"tp": int(np.sum(p & t)), "fp": int(np.sum(p & ~t)), "fn": int(np.sum(~p & t)), "tn": int(np.sum(~p & ~t))}
 
 
-def binary_scores(predicted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+def binary_scores(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
     """Accuracy, precision, recall and F1 of a 0/1 graph (precision is 0 when nothing is predicted)."""
-    c = confusion(predicted, truth)
+    c = confusion(predicted, truth, mask)
     total = c["tp"] + c["fp"] + c["fn"] + c["tn"]
     precision = c["tp"] / (c["tp"] + c["fp"]) if c["tp"] + c["fp"] else 0.0
     recall = c["tp"] / (c["tp"] + c["fn"]) if c["tp"] + c["fn"] else 1.0
@@ -34,9 +50,9 @@ def binary_scores(predicted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     return {"accuracy": (c["tp"] + c["tn"]) / total, "precision": precision, "recall": recall, "f1": f1}
 
 
-def roc_auc(scores: np.ndarray, truth: np.ndarray) -> float:
+def roc_auc(scores: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Area under the ROC curve of edge scores (Mann-Whitney U with ties counted half)."""
-    mask = scored_entries(truth.shape)
+    mask = scored_entries(truth.shape) if mask is None else mask
     s, t = scores[mask].astype(np.float64), truth[mask].astype(bool)
     pos, neg = s[t], s[~t]
     if len(pos) == 0 or len(neg) == 0:
@@ -57,24 +73,41 @@ def _average_ranks(sorted_values: np.ndarray) -> np.ndarray:
     return ranks
 
 
-def best_threshold(scores: np.ndarray, truth: np.ndarray, num: int = 200) -> tuple[float, dict[str, float]]:
+def best_threshold(
+    scores: np.ndarray, truth: np.ndarray, num: int = 200, mask: np.ndarray | None = None
+) -> tuple[float, dict[str, float]]:
     """Linear search over thresholds spanning the scored CMI values; returns (threshold, scores) at best F1."""
-    mask = scored_entries(truth.shape)
+    mask = scored_entries(truth.shape) if mask is None else mask
     values = scores[mask]
     lo, hi = float(np.min(values)), float(np.max(values))
-    best_t, best = lo, binary_scores(scores >= lo, truth)
+    best_t, best = lo, binary_scores(scores >= lo, truth, mask)
     for threshold in np.linspace(lo, hi, num)[1:]:
-        result = binary_scores(scores >= threshold, truth)
+        result = binary_scores(scores >= threshold, truth, mask)
         if result["f1"] > best["f1"]:
             best_t, best = float(threshold), result
     return best_t, best
 
 
-def score_graph(cmi: np.ndarray, truth: np.ndarray, threshold: float) -> dict[str, float]:
-    """All the chapter's metrics: at the working threshold, ROC AUC, and at the best threshold."""
-    scores = binary_scores(cmi >= threshold, truth)
-    scores["roc_auc"] = roc_auc(cmi, truth)
-    t, best = best_threshold(cmi, truth)
+def score_graph(
+    cmi: np.ndarray, truth: np.ndarray, threshold: float, constant_factors: Sequence[int] | None = None
+) -> dict[str, float]:
+    """All the chapter's metrics: at the working threshold, ROC AUC, and at the best threshold.
+
+    With ``constant_factors`` (factor indices, possibly none) the same metrics over
+    :func:`identifiable_entries` follow, prefixed ``identifiable_`` (equal to the others when
+    nothing is constant), with ``unidentifiable_true_edges``: the true edges left out."""
+    scores = _scores(cmi, truth, threshold, scored_entries(truth.shape))
+    if constant_factors is not None:
+        mask = identifiable_entries(truth.shape, constant_factors)
+        scores.update({f"identifiable_{k}": v for k, v in _scores(cmi, truth, threshold, mask).items()})
+        scores["unidentifiable_true_edges"] = float(np.sum(truth.astype(bool) & scored_entries(truth.shape) & ~mask))
+    return scores
+
+
+def _scores(cmi: np.ndarray, truth: np.ndarray, threshold: float, mask: np.ndarray) -> dict[str, float]:
+    scores = binary_scores(cmi >= threshold, truth, mask)
+    scores["roc_auc"] = roc_auc(cmi, truth, mask)
+    t, best = best_threshold(cmi, truth, mask=mask)
     scores["best_threshold"] = t
     scores.update({f"best_threshold_{k}": v for k, v in best.items()})
     return scores

@@ -105,6 +105,11 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
     def factor_names(self) -> tuple[str, ...]:
         return layout.FACTOR_NAMES
 
+    def constant_factors(self) -> tuple[str, ...]:
+        """Factors constant in every episode by construction (:data:`envs.manipulation_layout.CONSTANT_FACTORS`):
+        the edges they cause are true but cannot be learned from this environment's data."""
+        return layout.CONSTANT_FACTORS
+
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:

@@ -24,6 +24,14 @@ def factor_slice(obj: str) -> slice:
 
 EEF, GRP, MOV, UNM, RAND = (factor_slice(o) for o in OBJECTS[:5])
 
+CONSTANT_FACTORS = ("unm.z", "rand.z", "mk1.z", "mk2.z", "mk3.z")
+"""Factors with the same value in every step of every episode (short of an intervention), by
+construction: ``unm`` and ``rand`` sit on the table and the markers lie on it (kinematic bodies whose
+walks are horizontal). The true edges they cause (``unm.z`` and ``rand.z`` block the robot and
+``mov``) cannot show in the scene's data; :func:`causal.graph_metrics.score_graph` leaves their
+columns out of its identifiable scores. (``unm.x``/``unm.y`` are constant within an episode but
+drawn anew at each reset, so they vary.)"""
+
 TABLE_TOP = np.array([0.0, 0.0, 0.8])
 """World position of the centre of the table's top surface (metres)."""
 TABLE_SIZE = (0.8, 0.8, 0.05)

@@ -37,7 +37,8 @@ Dimensions that are constant in the scene's own episodes (``unm.z``, ``rand.z``,
 keep the edges an intervention on them would reveal (``unm.z`` raised to the arm's height blocks
 it), so ``unm`` and ``rand`` are action-relevant in every dimension, as the chapter says. The
 scene's own data carry no information about a constant, so a learner cannot find those edges:
-scores that should only count learnable edges can mask the columns ``unm.z``, ``rand.z``, ``mk*.z``.
+the identifiable scores leave out the columns of
+:data:`envs.manipulation_layout.CONSTANT_FACTORS` (``unm.z``, ``rand.z``, ``mk*.z``).
 
 Resulting classes (:func:`causal.abstraction.cdl_abstraction`): controllable ``eef``, ``grp``,
 ``mov``; action-relevant ``unm``, ``rand``; action-irrelevant ``mk1``-``mk3``.

@@ -13,10 +13,20 @@ from causal.cdl import CDLModel, import_tensors, model_from_config_json
 from causal.cdl_trainer import with_self_edges
 from causal.graph_metrics import score_graph
 from causal.replay import ReplayBuffer, heldout_mask
+from envs.manipulation_layout import CONSTANT_FACTORS as MANIPULATION_CONSTANT_FACTORS
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
+
+CONSTANT_FACTORS: dict[str, tuple[str, ...]] = {"manipulation": MANIPULATION_CONSTANT_FACTORS}
+"""Factors constant by construction, by ``EnvSpec.env_id`` (environments not listed have none). A
+table here rather than an EnvSpec field: that would be a message schema change for one env's fact."""
+
+
+def constant_factor_indices(spec: EnvSpec) -> tuple[int, ...]:
+    """Indices of the spec's factors that never vary: their columns are left out of the identifiable scores."""
+    return tuple(spec.factor_names.index(name) for name in CONSTANT_FACTORS.get(spec.env_id, ()))
 
 
 class GraphEvaluatorCore:
@@ -24,6 +34,7 @@ class GraphEvaluatorCore:
 
     def __init__(self, cfg: GraphEvaluatorConfig, spec: EnvSpec, kind: str = "cdl") -> None:
         self.cfg, self.spec, self.kind = cfg, spec, kind
+        self.constant_factors = constant_factor_indices(spec)
         self.heldout = ReplayBuffer(cfg.heldout_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.model: CDLModel | None = None
         self.model_config = ""
@@ -72,7 +83,7 @@ class GraphEvaluatorCore:
         adjacency = with_self_edges(cmi >= self.cfg.cmi_threshold).astype(np.uint8)
         abstraction = cdl_abstraction(adjacency)
         truth = self.spec.global_graph
-        metrics = score_graph(cmi, truth, self.cfg.cmi_threshold) if truth is not None else {}
+        metrics = score_graph(cmi, truth, self.cfg.cmi_threshold, self.constant_factors) if truth is not None else {}
         w = self.weights
         self.history.append({"env_steps": w.env_steps, "updates": w.updates, "time": time.time(), **metrics})
         return GraphReport(kind=self.kind, weights_version=w.version, env_steps=w.env_steps, updates=w.updates,

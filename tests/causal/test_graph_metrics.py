@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from causal.graph_metrics import best_threshold, binary_scores, confusion, roc_auc, score_graph
+from causal.graph_metrics import (
+    best_threshold, binary_scores, confusion, identifiable_entries, roc_auc, score_graph, scored_entries,
+)
 
 TRUTH = np.array([[1, 1, 0, 1],
                   [0, 1, 0, 1],
@@ -39,3 +41,29 @@ def test_best_threshold_finds_perfect_separation() -> None:
     assert best["f1"] == 1.0 and 0.001 < threshold <= 0.05
     s = score_graph(scores, TRUTH, threshold=0.1)
     assert s["f1"] == 0.0 and s["best_threshold_f1"] == 1.0 and s["roc_auc"] == 1.0
+
+
+def test_identifiable_scores_equal_the_full_ones_when_nothing_is_constant() -> None:
+    scores = np.array([[9, 0.9, 0.1, 0.8], [0, 9, 0.3, 0.2], [0.25, 0.0, 9, 0.05]])
+    paper = score_graph(scores, TRUTH, threshold=0.15)
+    both = score_graph(scores, TRUTH, threshold=0.15, constant_factors=())
+    assert not any(k.startswith("identifiable_") for k in paper)  # the paper's score alone, unchanged
+    assert {k: v for k, v in both.items() if k in paper} == paper
+    assert {k: both[f"identifiable_{k}"] for k in paper} == paper
+    assert both["unidentifiable_true_edges"] == 0.0
+    assert np.array_equal(identifiable_entries(TRUTH.shape, ()), scored_entries(TRUTH.shape))
+
+
+def test_identifiable_scores_leave_out_the_columns_of_constant_factors_by_hand() -> None:
+    # Factor 1 is constant: its true edge 1 -> 0 is invisible to any learner, which misses it.
+    # Full: tp 2 (0<-a, 1<-a), fp 1 (2<-0), fn 1 (0<-1), tn 5. Without column 1: tp 2, fp 1, fn 0, tn 4.
+    cmi = np.array([[9, 0.0, 0.0, 0.8], [0.0, 9, 0.0, 0.6], [0.5, 0.0, 9, 0.0]])
+    mask = identifiable_entries(TRUTH.shape, (1,))
+    assert mask.sum() == 7 and not mask[:, 1].any() and mask[:, 3].all()
+    s = score_graph(cmi, TRUTH, threshold=0.1, constant_factors=(1,))
+    assert s["accuracy"] == 7 / 9 and s["recall"] == 2 / 3 and abs(s["f1"] - 2 / 3) < 1e-12
+    assert s["identifiable_accuracy"] == 6 / 7 and s["identifiable_precision"] == 2 / 3
+    assert s["identifiable_recall"] == 1.0 and abs(s["identifiable_f1"] - 0.8) < 1e-12
+    assert s["unidentifiable_true_edges"] == 1.0
+    # positives 0.8, 0.6 above all five negatives; the missed 1 -> 0 (CMI 0) only counts in the full AUC
+    assert s["identifiable_roc_auc"] == 1.0 and s["roc_auc"] < 1.0
