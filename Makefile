@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 ARGS ?=
 N ?= 2
 
-.PHONY: run test test-slow test-all bench bench-f1 lint up down scale logs sysdeps clean venv
+.PHONY: run test test-slow test-all bench bench-f1 bench-collection lint up down scale logs sysdeps clean venv
 
 venv: $(STAMP)
 
@@ -50,6 +50,9 @@ bench: $(STAMP)
 
 bench-f1: $(STAMP)
 	$(PY) -m benchmarks.bench_time_to_f1 $(ARGS)
+
+bench-collection: $(STAMP)
+	$(PY) -m benchmarks.bench_collection $(ARGS)
 
 lint: $(STAMP)
 	$(PY) -m pyflakes services proto envs causal benchmarks

@@ -27,6 +27,8 @@ class DynamicsLearnerConfig(ServiceConfig):
     publish_every_s: float = doc(3.0, "seconds between weight publications")
     checkpoint_every_s: float = doc(30.0, "seconds between checkpoints")
     max_updates: int = doc(0, "stop after this many updates (0: never)")
+    updates_per_env_step: float = doc(0.0, "update only while updates < this x env steps ingested, so collectors "
+                                           "of different speeds get the same training per step (0: as fast as possible)")
 
     def cdl(self) -> CDLConfig:
         return CDLConfig(feature_hidden=self.feature_hidden, feature_dim=self.feature_dim,

@@ -45,6 +45,14 @@ class DynamicsLearnerCore:
     def ready(self) -> bool:
         return self.replay.size >= max(self.cfg.warmup_steps, self.cfg.batch_size)
 
+    @property
+    def may_update(self) -> bool:
+        """Ready, and below ``updates_per_env_step`` x env steps ingested when that ratio is set.
+
+        Both counts are checkpointed, so a resumed learner keeps the ratio."""
+        ratio = self.cfg.updates_per_env_step
+        return self.ready and (ratio <= 0 or self.trainer.updates < ratio * self.env_steps)
+
     def train_step(self) -> dict[str, float]:
         stats = self.trainer.update(*self.replay.sample(self.cfg.batch_size))
         self.last_stats.update(stats)

@@ -10,7 +10,7 @@ from proto.messages import GraphReport, TransitionBatch
 from services.bus.base import Transport
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import MODEL, DynamicsLearnerCore
-from services.runtime.shell import ServiceShell, service_main
+from services.runtime.shell import Inbox, ServiceShell, service_main
 
 SERVICE = "dynamics-learner"
 log = logging.getLogger(SERVICE)
@@ -28,6 +28,9 @@ class _Metrics:
         self.update_seconds = m.histogram("causeway_update_seconds", "Duration of one CDL update",
                                           (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0))
         self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
+        self.ratio = m.gauge("causeway_dynamics_updates_per_env_step", "Updates per env step ingested so far")
+        self.ratio_wait = m.counter("causeway_dynamics_ratio_wait_seconds",
+                                    "Seconds the learner waited for env steps at --updates-per-env-step")
 
 
 def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
@@ -49,15 +52,12 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
         while not shell.stopping.is_set():
             shell.poll_control()
             _drain(core, transitions, graphs, shell)
-            if shell.paused or not core.ready:
+            if shell.paused:
                 time.sleep(0.02)
+            elif core.may_update:
+                _train(core, metrics)
             else:
-                t0 = time.perf_counter()
-                stats = core.train_step()
-                metrics.update_seconds.observe(time.perf_counter() - t0)
-                metrics.updates.inc()
-                for term, value in stats.items():
-                    metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
+                _wait_for_transitions(core, transitions, shell, metrics)
             now = time.monotonic()
             if core.ready and now - last_publish >= cfg.publish_every_s:
                 _publish(shell, core, latest, metrics)
@@ -68,6 +68,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
                 shell.checkpoint_requested, last_ckpt = False, now
             metrics.replay.set(core.replay.size)
             metrics.env_steps.set(core.env_steps)
+            metrics.ratio.set(core.trainer.updates / max(core.env_steps, 1))
             shell.beat(core.progress())
             if cfg.max_updates and core.trainer.updates >= cfg.max_updates:
                 break
@@ -79,6 +80,26 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
         shell.beat(core.progress(), force=True)
         latest.close()
         shell.close()
+
+
+def _train(core: DynamicsLearnerCore, metrics: _Metrics) -> None:
+    t0 = time.perf_counter()
+    stats = core.train_step()
+    metrics.update_seconds.observe(time.perf_counter() - t0)
+    metrics.updates.inc()
+    for term, value in stats.items():
+        metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
+
+
+def _wait_for_transitions(core: DynamicsLearnerCore, transitions: Inbox, shell: ServiceShell, metrics: _Metrics) -> None:
+    """Block on the inbox (no spin) until a batch arrives or 50 ms pass; time spent at the
+    updates-per-env-step ratio (not in warm-up) is counted."""
+    at_ratio, t0 = core.ready, time.perf_counter()
+    item = transitions.get(timeout=0.05)
+    if item is not None:
+        shell.guarded(core.ingest, item[1])
+    if at_ratio:
+        metrics.ratio_wait.inc(time.perf_counter() - t0)
 
 
 def _drain(core: DynamicsLearnerCore, transitions, graphs, shell: ServiceShell) -> None:

@@ -62,7 +62,8 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                 break
             _throttle(cfg.max_steps_per_second, core.env_steps, started)
     finally:
-        shell.beat({"env_steps": core.env_steps, "episodes": core.episode}, force=True)
+        shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": core.policy.version},
+                   force=True)
         spec_value.close()
         shell.close()
 

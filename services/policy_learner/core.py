@@ -84,6 +84,8 @@ class PolicyLearnerCore:
         self.updates = self.updates_since_publish = 0
         self.env_steps = 0
         self.dropped: Counter[str] = Counter()
+        self.lags: Counter[str] = Counter()
+        """Received batches by policy lag: ``"0"`` .. ``str(max_policy_lag)``, ``"over"`` (stale), ``"future"``."""
         self.graph_version = -1
         self.kept_factors: tuple[int, ...] | None = None
         self.last_stats: dict[str, float] = {}
@@ -96,6 +98,7 @@ class PolicyLearnerCore:
             else (message, None)
         check_fits(self.spec, batch)
         lag = self.version - batch.policy_version
+        self.lags[str(lag) if 0 <= lag <= self.cfg.max_policy_lag else "over" if lag > 0 else "future"] += 1
         reason = self._drop_reason(batch.policy_version, lag)
         if reason:
             self.dropped[reason] += 1
@@ -216,4 +219,5 @@ class PolicyLearnerCore:
     def progress(self) -> dict[str, float]:
         return {"policy_version": self.version, "updates": self.updates, "env_steps": self.env_steps,
                 "replay_size": len(self.replay), "pending_batches": len(self.pending),
-                **{f"dropped_{k}": v for k, v in self.dropped.items()}, **self.last_stats}
+                **{f"dropped_{k}": v for k, v in self.dropped.items()},
+                **{f"lag_{k}": v for k, v in self.lags.items()}, **self.last_stats}

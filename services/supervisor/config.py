@@ -24,7 +24,12 @@ class RunConfig:
     seed: int = doc(0, "run seed (worker i uses seed + i)")
     workers: int = doc(1, "number of env-worker processes")
     max_seconds: float = doc(900.0, "stop after this many seconds of wall time (0: no limit)")
-    max_env_steps: int = doc(0, "stop after this many env steps (0: no limit)")
+    max_env_steps: int = doc(0, "stop after this many env steps (0: no limit); with --updates-per-env-step the "
+                                "env-workers pause there and the run stops once the learner caught up")
+    updates_per_env_step: float = doc(0.0, "dynamics-learner: at most this many updates per env step ingested, so "
+                                           "collectors of different speeds train the same (0: as fast as possible)")
+    catch_up_timeout_s: float = doc(600.0, "with --updates-per-env-step and --max-env-steps: longest wait, after the "
+                                           "env-step budget, for the learner to catch up and the graph to follow")
     target_f1: float = doc(0.0, "stop once the graph's F1 reaches this (0: never)")
     target_metric: str = doc("f1", "metric compared with --target-f1: f1 (working threshold) or best_threshold_f1")
     run_id: str = doc("", "run id (default: derived from env, graph and time)")
@@ -50,3 +55,5 @@ class RunConfig:
     abstraction: bool = doc(True, "mask the policy input to the learned abstraction (false: the dense baseline)")
     max_policy_lag: int = doc(4, "policy-learner: drop batches more than this many policy versions old")
     intrinsic_coef: float = doc(1.0, "policy-learner: weight of the intrinsic reward")
+    evaluate: bool = doc(True, "after a Chemical run: k-step prediction of the run's CDL model on ID and OOD "
+                               "states and, with --task match, CEM and policy returns (summary.json, evaluation.png)")

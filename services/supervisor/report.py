@@ -16,6 +16,9 @@ from proto.messages import GraphReport  # noqa: E402
 
 SUMMARY_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold", "best_threshold_f1",
                   "best_threshold_accuracy", "best_threshold_precision", "best_threshold_recall")
+IDENTIFIABLE_SCORES = tuple(f"identifiable_{k}" for k in SUMMARY_SCORES) + ("unidentifiable_true_edges",)
+"""The same scores without the columns of factors that are constant by construction (see
+:func:`causal.graph_metrics.score_graph`); equal to the others in environments without such factors."""
 
 
 def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict[str, float]]) -> dict[str, Any]:
@@ -25,7 +28,7 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
         out["graph_report"] = None
         return out
     abstraction = Abstraction(report.controllable, report.action_relevant, report.action_irrelevant)
-    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES if k in report.metrics})
+    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES if k in report.metrics})
     out.update({
         "threshold": report.threshold,
         "weights_version": report.weights_version,
@@ -36,7 +39,8 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
         "true_graph": report.true_graph.astype(int).tolist() if report.true_graph is not None else None,
         "cmi": np.round(report.cmi.astype(float), 5).tolist(),
         "abstraction": abstraction.named(report.factor_names),
-        "scoring": "off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored)",
+        "scoring": "off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored); "
+                   "identifiable_*: also without the columns of factors constant by construction",
         "history": history,
     })
     return out
@@ -137,7 +141,10 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
         return
     steps = [h["env_steps"] for h in history]
     fig, ax = plt.subplots(figsize=(7, 4))
-    for key in ("f1", "best_threshold_f1", "accuracy", "roc_auc"):
+    keys = ["f1", "best_threshold_f1", "accuracy", "roc_auc"]
+    if history[0].get("unidentifiable_true_edges", 0) > 0:  # else identical to the full scores
+        keys += ["identifiable_f1", "identifiable_best_threshold_f1"]
+    for key in keys:
         if key in history[0]:
             ax.plot(steps, [h[key] for h in history], label=key)
     ax.set_xlabel("env steps")
@@ -145,6 +152,53 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def policy_summary(stats: dict[tuple[str, str], dict[str, float]],
+                   timeline: list[tuple[float, str, str, float]]) -> dict[str, Any]:
+    """The weight broadcast at the end of a run with a policy: the last published version, the
+    version each env-worker acted with, the policy-lag distribution of the batches the
+    policy-learner received and its drops by reason (from the services' last stats beats)."""
+    learner = next((v for (service, _), v in stats.items() if service == "policy-learner"), {})
+    lags = {key[4:]: int(v) for key, v in learner.items() if key.startswith("lag_")}
+    order = sorted((k for k in lags if k.isdigit()), key=int) + [k for k in ("over", "future") if k in lags]
+    return {
+        "published_version": int(learner.get("policy_version", 0)),
+        "worker_versions": {inst: int(v.get("policy_version", 0)) for (service, inst), v in sorted(stats.items())
+                            if service == "env-worker"},
+        "lag_histogram": {k: lags[k] for k in order},
+        "dropped": {key[8:]: int(v) for key, v in learner.items() if key.startswith("dropped_")},
+        "version_timeline": [[round(t, 2), f"{service}/{inst}", int(v)] for t, service, inst, v in timeline],
+    }
+
+
+def plot_policy(policy: dict[str, Any], path: Path) -> None:
+    """Left: published policy version and each worker's version in use over the run. Right: the
+    policy-lag distribution of received batches (versions behind the learner when they arrived)."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
+    series: dict[str, list[tuple[float, int]]] = {}
+    for t, who, version in policy["version_timeline"]:
+        series.setdefault(who, []).append((t, version))
+    for who, points in sorted(series.items()):
+        t, v = zip(*points)
+        label = "published (policy-learner)" if who.startswith("policy-learner") else f"in use: {who}"
+        left.step(t, v, where="post", label=label, linewidth=2.5 if "learner" in who else 1.2)
+    left.set_xlabel("seconds since start")
+    left.set_ylabel("policy version")
+    left.set_title("weight broadcast")
+    left.grid(alpha=0.3)
+    left.legend(fontsize=7, loc="upper left")
+    lags = policy["lag_histogram"]
+    total = max(sum(lags.values()), 1)
+    right.bar(list(lags), [n / total for n in lags.values()], color="#4a7ab0")
+    right.set_xlabel("policy lag of a received batch (versions)")
+    right.set_ylabel("fraction of batches")
+    dropped = ", ".join(f"{k} {v}" for k, v in policy["dropped"].items() if v) or "none"
+    right.set_title(f"lag distribution ({total} batches; dropped: {dropped})", fontsize=9)
+    right.grid(alpha=0.3, axis="y")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -4,6 +4,12 @@ A Zenoh router runs inside this process (a Python session in router mode on 127.
 scouting off); every service runs as its own OS process connected to it. The supervisor restarts
 crashed services (they resume from their checkpoints), shows live progress from the services' stats
 beats and graph reports, stops on a target F1 or a time/step budget, and writes the run directory.
+
+With ``--updates-per-env-step`` the env-step budget does not stop the run at once: the env-workers
+are paused (Control ``pause``, repeated every second so a restarted worker pauses too) and the run
+stops when a graph report comes from weights trained ``CATCH_UP_TOLERANCE`` x ratio x budget updates,
+or after ``--catch-up-timeout-s``. So every collector ends with the same data and the same training,
+however fast it collected.
 """
 from __future__ import annotations
 
@@ -32,10 +38,13 @@ from services.policy_learner.config import PolicyLearnerConfig
 from services.runtime.config import to_environ, write_config
 from services.supervisor import report as reporting
 from services.supervisor.config import COLLECTORS, INTRINSIC, TASKS, RunConfig
+from services.env_worker.core import env_kwargs
+from services.supervisor.evaluation import CHEMICAL_ENVS, evaluate_run, plot_evaluation
 from services.supervisor.processes import FatalServiceError, ManagedProcess, stop_all
 from services.supervisor.progress import Progress
 
 log = logging.getLogger("supervisor")
+CATCH_UP_TOLERANCE = 0.98
 
 
 def resolve(cfg: RunConfig) -> RunConfig:
@@ -57,7 +66,6 @@ def resolve(cfg: RunConfig) -> RunConfig:
 
 def _discrete_actions(cfg: RunConfig) -> bool:
     from envs import make_env
-    from services.env_worker.core import env_kwargs
 
     probe = worker_config(dataclasses.replace(cfg, metrics_base_port=0), "", 0)
     return make_env(cfg.env, **env_kwargs(probe)).unwrapped.env_spec().action_kind == "categorical"
@@ -71,7 +79,8 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
                                     batch_size=cfg.batch_size, feature_hidden=cfg.feature_dim,
                                     feature_dim=cfg.feature_dim, predictor_hidden=cfg.predictor_hidden,
                                     cmi_threshold=cfg.cmi_threshold, publish_every_s=cfg.publish_every_s,
-                                    checkpoint_every_s=cfg.checkpoint_every_s)
+                                    checkpoint_every_s=cfg.checkpoint_every_s,
+                                    updates_per_env_step=cfg.updates_per_env_step)
     evaluator = GraphEvaluatorConfig(**common, metrics_port=port(2), cmi_threshold=cfg.cmi_threshold,
                                      min_interval_s=cfg.eval_interval_s, seed=cfg.seed,
                                      checkpoint_every_s=cfg.checkpoint_every_s)
@@ -127,6 +136,10 @@ class Supervisor:
         self.retired: list[ManagedProcess] = []
         self.next_worker_index = 0
         self.failure = ""
+        self.policy_timeline: list[tuple[float, str, str, float]] = []
+        """(seconds since start, service, instance, policy version) whenever a version changes."""
+        self.budget_reached_at: float | None = None
+        self._last_pause = -1e9
 
     @property
     def dashboard_url(self) -> str | None:
@@ -214,9 +227,23 @@ class Supervisor:
 
     def _on_stats(self, key: str, payload: bytes) -> None:
         try:
-            self.progress.on_stats(decode(payload, ServiceStats))
+            stats = decode(payload, ServiceStats)
         except ProtocolError:
             log.warning("bad stats message on %s", key)
+            return
+        self._track_policy_version(stats)
+        self.progress.on_stats(stats)
+
+    def _track_policy_version(self, stats: ServiceStats) -> None:
+        """Record published (policy-learner) and in-use (env-worker) policy versions as they change."""
+        version = stats.values.get("policy_version")
+        if version is None or stats.service not in ("policy-learner", "env-worker"):
+            return
+        previous = self.progress.stats.get((stats.service, stats.instance))
+        if previous is None or previous.values.get("policy_version") != version:
+            with self._lock:
+                self.policy_timeline.append((time.monotonic() - self.progress.started, stats.service,
+                                             stats.instance, version))
 
     def _on_graph(self, key: str, payload: bytes) -> None:
         try:
@@ -267,9 +294,29 @@ class Supervisor:
         if cfg.target_f1 and report is not None and report.metrics.get(cfg.target_metric, 0.0) >= cfg.target_f1:
             self.request_stop(f"target {cfg.target_metric} {cfg.target_f1} reached")
         elif cfg.max_env_steps and self.progress.env_steps() >= cfg.max_env_steps:
-            self.request_stop(f"env step budget {cfg.max_env_steps} reached")
-        elif cfg.max_seconds and elapsed >= cfg.max_seconds:
+            if cfg.updates_per_env_step > 0:
+                self._catch_up(elapsed)
+            else:
+                self.request_stop(f"env step budget {cfg.max_env_steps} reached")
+        if cfg.max_seconds and elapsed >= cfg.max_seconds:
             self.request_stop(f"time budget {cfg.max_seconds:.0f}s reached")
+
+    def _catch_up(self, elapsed: float) -> None:
+        """Env-step budget reached with a ratio set: keep the env-workers paused until the graph
+        reflects a learner that made its share of updates (or the catch-up timeout passes)."""
+        cfg = self.cfg
+        if self.budget_reached_at is None:
+            self.budget_reached_at = elapsed
+            log.warning("env step budget %d reached: env-workers paused until the learner catches up", cfg.max_env_steps)
+        if elapsed - self._last_pause >= 1.0:
+            self._last_pause = elapsed
+            self.bus.publish(topics.control(cfg.run_id, "env-worker"), encode(Control("pause", issued_at=time.time())))
+        report = self.last_report
+        if learner_caught_up(report, cfg.updates_per_env_step, cfg.max_env_steps):
+            self.request_stop(f"env step budget {cfg.max_env_steps} reached, learner caught up ({report.updates} updates)")
+        elif elapsed - self.budget_reached_at >= cfg.catch_up_timeout_s:
+            self.request_stop(f"env step budget {cfg.max_env_steps} reached, learner did not catch up "
+                              f"in {cfg.catch_up_timeout_s:.0f}s")
 
     def restarts(self) -> int:
         return sum(p.restarts for p in self.processes.values())
@@ -295,14 +342,62 @@ class Supervisor:
                 "seed": cfg.seed, "workers": cfg.workers, "env_steps": self.progress.env_steps(),
                 "updates": self.progress.updates(), "wall_seconds": round(wall_seconds, 1),
                 "stopped_because": self.stop_reason or "stopped", "restarts": self.restarts(),
+                "catch_up_seconds": (round(wall_seconds - self.budget_reached_at, 1)
+                                     if self.budget_reached_at is not None else 0.0),
                 "git_revision": _git_revision()}
         content = reporting.summary(report, base, history)
+        if cfg.collector != "random":
+            with self._lock:
+                stats = {ident: dict(s.values) for ident, s in self.progress.stats.items()}
+                content["policy"] = reporting.policy_summary(stats, list(self.policy_timeline))
+            reporting.plot_policy(content["policy"], self.run_dir / "policy.png")
+        if report is not None and cfg.evaluate and cfg.env in CHEMICAL_ENVS and not self.failure:
+            content["evaluation"] = self._evaluate(report)
         reporting.write_summary(self.run_dir / "summary.json", content)
         if report is not None:
             reporting.plot_graphs(report, self.run_dir / "graph.png")
             reporting.plot_object_graphs(report, self.run_dir / "object_graph.png")
             reporting.plot_learning_curve(history, self.run_dir / "learning_curve.png")
+        if "prediction" in content.get("evaluation", {}):
+            plot_evaluation(content["evaluation"], self.run_dir / "evaluation.png")
         return content
+
+    def _evaluate(self, report: GraphReport) -> dict:
+        """Chapter 3's evaluations on this run's final models (see services.supervisor.evaluation);
+        a failure is recorded in the summary, never raised: the run itself is done."""
+        cfg = self.cfg
+        configs = service_configs(cfg, self.connect)
+        self.progress.stream.write("evaluating the run's model (prediction ID/OOD"
+                                   + (", Match" if cfg.task == "match" else "") + ") ...\n")
+        try:
+            policy = load_policy(self.run_dir, configs["policy-learner"], cfg) if cfg.collector != "random" else None
+            return evaluate_run(self.run_dir, cfg.env, env_kwargs(configs["env-worker"]),
+                                configs["dynamics-learner"].cdl(), report, policy)
+        except Exception as exc:  # noqa: BLE001 - reported in the summary
+            log.exception("post-run evaluation failed")
+            return {"error": f"{type(exc).__name__}: {exc}"}
+
+
+def learner_caught_up(report: GraphReport | None, ratio: float, max_env_steps: int) -> bool:
+    """Whether ``report`` scores weights trained for (about) ``ratio`` x ``max_env_steps`` updates.
+
+    The learner never exceeds its ratio of the steps it ingested, so such weights have also seen
+    (about) the whole budget."""
+    return report is not None and report.updates >= CATCH_UP_TOLERANCE * ratio * max_env_steps
+
+
+def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig):
+    """The policy-learner's last checkpointed policy as ``obs -> action`` (deterministic), or None."""
+    from envs import make_env
+    from services.policy_learner.core import PolicyLearnerCore
+
+    path = run_dir / "checkpoints" / "policy-learner-0.pt"
+    if not path.exists():
+        return None
+    spec = make_env(cfg.env, **env_kwargs(worker_config(cfg, "", 0))).unwrapped.env_spec()
+    core = PolicyLearnerCore(policy_cfg, spec)
+    core.restore(path)
+    return lambda obs: core.agent.act(obs, deterministic=True)
 
 
 def _git_revision() -> str:

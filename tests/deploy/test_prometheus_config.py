@@ -32,13 +32,15 @@ LEARNER_METRICS = {
     "causeway_dynamics_updates_total", "causeway_dynamics_nll_nats", "causeway_replay_transitions",
     "causeway_learner_env_steps", "causeway_weights_version", "causeway_weights_bytes_published_total",
     "causeway_update_seconds", "causeway_checkpoints_total",
+    "causeway_dynamics_updates_per_env_step", "causeway_dynamics_ratio_wait_seconds_total",
 }
 EVALUATOR_METRICS = {
     "causeway_graph_accuracy_ratio", "causeway_graph_precision_ratio", "causeway_graph_recall_ratio",
     "causeway_graph_f1_ratio", "causeway_graph_roc_auc_ratio", "causeway_graph_best_threshold_f1_ratio",
     "causeway_graph_best_threshold_nats", "causeway_graph_edges", "causeway_abstraction_factors",
     "causeway_graph_reports_total", "causeway_heldout_transitions", "causeway_graph_weights_version",
-    "causeway_graph_env_steps", "causeway_graph_eval_seconds",
+    "causeway_graph_env_steps", "causeway_graph_eval_seconds", "causeway_graph_identifiable_accuracy_ratio",
+    "causeway_graph_identifiable_f1_ratio", "causeway_graph_identifiable_best_threshold_f1_ratio",
 }
 HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds"}
 KNOWN_METRICS = COMMON_METRICS | ENV_WORKER_METRICS | LEARNER_METRICS | EVALUATOR_METRICS | {"up"}

@@ -47,6 +47,8 @@ def test_stale_future_and_random_policy_batches_are_dropped_and_counted() -> Non
     assert (stale.lag, stale.dropped) == (2, "stale")
     assert core.ingest(relabel(fresh[1], 9)).dropped == "future"
     assert core.dropped == {"future": 1, "random_policy": 2, "stale": 1}
+    assert core.lags == {"0": 3, "1": 2, "over": 1, "future": 1}  # every received batch, dropped or used
+    assert core.progress()["lag_over"] == 1
     assert core.env_steps == 192 and len(core.pending) == 1
 
 
