@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 ARGS ?=
 N ?= 2
 
-.PHONY: run test test-slow test-all bench bench-f1 bench-collection lint up down scale logs sysdeps clean venv
+.PHONY: run test test-slow test-all bench bench-f1 bench-collection bench-ch3 lint up down scale logs sysdeps clean venv
 
 venv: $(STAMP)
 
@@ -53,6 +53,10 @@ bench-f1: $(STAMP)
 
 bench-collection: $(STAMP)
 	$(PY) -m benchmarks.bench_collection $(ARGS)
+
+bench-ch3: $(STAMP)
+	$(PY) -m benchmarks.bench_ch3_generalisation --graphs chain full collider --num-objects 10 \
+		--transitions 100000 --updates 3000 --prediction-starts 2000 --match-graphs full --match-episodes 16 $(ARGS)
 
 lint: $(STAMP)
 	$(PY) -m pyflakes services proto envs causal benchmarks

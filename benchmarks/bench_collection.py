@@ -40,7 +40,7 @@ def run_one(name: str, seed: int, args: argparse.Namespace, root: Path) -> dict:
                     updates_per_env_step=args.updates_per_env_step, steps_per_second=args.steps_per_second,
                     max_seconds=args.max_seconds, catch_up_timeout_s=args.catch_up_timeout_s,
                     run_dir=str(root / f"{name}-s{seed}"), router_port=0, metrics_base_port=0, dashboard_port=0,
-                    progress=args.progress, **COLLECTORS[name])
+                    progress=args.progress, evaluate=False, **COLLECTORS[name])  # graph scores only
     summary = Supervisor(cfg).run()
     return {"collector": name, "run_dir": cfg.run_dir, **{k: summary.get(k) for k in RUN_KEYS if k != "collector"}}
 

@@ -104,3 +104,10 @@ def test_local_stack_learns_survives_sigkill_and_reports(tmp_path: Path) -> None
     assert summary["factor_names"][:3] == ["obj0.color", "obj0.x", "obj0.y"]
     assert (run_dir / "graph.png").stat().st_size > 10_000
     assert (run_dir / "config.json").exists()
+    # The post-run evaluation: k-step colour accuracy of the final CDL model, ID and OOD.
+    evaluation = summary["evaluation"]
+    assert "error" not in evaluation, evaluation
+    accuracy = evaluation["prediction"]["colour_accuracy"]
+    assert set(accuracy) == {"id", "ood_0.1", "ood_1", "ood_10"}, accuracy
+    assert all(len(curve) == 5 and all(0.0 <= x <= 1.0 for x in curve) for curve in accuracy.values())
+    assert (run_dir / "evaluation.png").stat().st_size > 10_000
