@@ -15,7 +15,7 @@ from causal.graph_metrics import scored_entries
 from proto.messages import GraphReport, ServiceStats
 
 ACTION_COLUMN = "action"
-CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1")
+CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1", "identifiable_f1")
 ABSTRACTION_CLASSES = (("controllable", "Controllable"), ("action_relevant", "Action-relevant"),
                        ("action_irrelevant", "Action-irrelevant"))
 OUTCOMES = ("tp", "fp", "fn", "tn")
@@ -34,6 +34,8 @@ class CurvePoint:
     recall: float | None
     roc_auc: float | None
     best_threshold_f1: float | None
+    identifiable_f1: float | None = None
+    """F1 without the columns of constant factors (manipulation); equal to ``f1`` elsewhere."""
 
     @classmethod
     def of(cls, report: GraphReport, time: float) -> CurvePoint:

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -129,6 +130,15 @@ def test_live_page_renders_updates_without_reload_and_explains_cells(stack) -> N
         outcomes = browser.evaluate("[...document.querySelectorAll('#heatmap-compare rect.cell')]"
                                     ".filter(r => r.classList.contains('outcome-tp')).length")
         assert outcomes == int(second.true_graph.sum()) - 9  # every true edge found, self-edges apart
+
+        assert browser.evaluate("document.getElementById('kpi-identifiable').hidden") is True  # Chemical: = F1
+        assert "identifiable F1" not in text(browser, "#chart-legend")
+        third = replace(make_report(3, version=8, errors=0, seed=7),
+                        metrics={**second.metrics, "identifiable_f1": 0.987})  # as on manipulation
+        latest.set(encode(third))
+        browser.wait_for("!document.getElementById('kpi-identifiable').hidden", 10, "the identifiable F1")
+        assert text(browser, "#identifiable-f1") == "0.987"
+        assert "identifiable F1" in text(browser, "#chart-legend")
 
         browser.fit_to_content()
         browser.hover("#heatmap-learned rect.cell[data-i='3'][data-j='0']")  # obj0.color -> obj1.color

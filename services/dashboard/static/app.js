@@ -19,6 +19,11 @@ const serverNow = () => (Date.now() + view.clockOffsetMs) / 1000;
 
 function setText(id, text) { $(id).textContent = text; }
 
+function drawChart() {
+  renderChart($('chart'), view.history);
+  renderChartLegend($('chart-legend'), view.history);
+}
+
 function renderKpis(graph, previous) {
   const m = graph.metrics;
   setText('f1', fmt.ratio(m.f1));
@@ -28,6 +33,9 @@ function renderKpis(graph, previous) {
   setText('roc-auc', fmt.ratio(m.roc_auc));
   setText('best-f1', fmt.ratio(m.best_threshold_f1));
   setText('best-threshold', m.best_threshold == null ? '' : `at ε = ${fmt.cmi(m.best_threshold)}`);
+  const identifiable = m.identifiable_f1 != null && m.identifiable_f1 !== m.f1;
+  $('kpi-identifiable').hidden = !identifiable;
+  setText('identifiable-f1', identifiable ? fmt.ratio(m.identifiable_f1) : '–');
   setText('env-steps', fmt.int(graph.env_steps));
   setText('updates', fmt.int(graph.updates));
   setText('weights-version', String(graph.weights_version));
@@ -143,7 +151,7 @@ function onSnapshot(snapshot) {
   onServices(snapshot);
   if (snapshot.graph) renderGraph(snapshot.graph);
   else renderWaiting();
-  renderChart($('chart'), view.history);
+  drawChart();
   renderAge();
 }
 
@@ -183,7 +191,7 @@ function selectRun(run, byUser) {
   view.services = [];
   if (byUser) window.history.replaceState(null, '', `?run=${encodeURIComponent(run)}`);
   renderWaiting();
-  renderChart($('chart'), view.history);
+  drawChart();
   renderServices();
   connect();
 }
@@ -191,11 +199,10 @@ function selectRun(run, byUser) {
 $('run').addEventListener('change', (e) => selectRun(e.target.value, true));
 window.addEventListener('resize', debounce(() => {
   if (view.graph) graphViews.render(view.graph);
-  renderChart($('chart'), view.history);
+  drawChart();
 }, 150));
-renderChartLegend($('chart-legend'));
 renderWaiting();
-renderChart($('chart'), view.history);
+drawChart();
 renderServices();
 setInterval(renderAge, 1000);
 connect();

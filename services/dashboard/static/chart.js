@@ -7,7 +7,14 @@ const SERIES = [
   { key: 'best_threshold_f1', label: 'best-threshold F1', dashed: true },
   { key: 'accuracy', label: 'accuracy' },
   { key: 'roc_auc', label: 'ROC AUC' },
+  { key: 'identifiable_f1', label: 'identifiable F1', dashed: true, optional: true },
 ];
+
+// Optional series are drawn only where they tell something new (identifiable F1 differs from F1
+// only on environments with constant factors, i.e. manipulation).
+function activeSeries(points) {
+  return SERIES.filter(({ key, optional }) => !optional || points.some((p) => p[key] != null && p[key] !== p.f1));
+}
 
 function niceTicks(lo, hi, count) {
   const raw = (hi - lo) / Math.max(count, 1);
@@ -42,7 +49,8 @@ export function renderChart(chart, points) {
     svg('text', { class: 'empty-note', x: width / 2, y: height / 2, 'text-anchor': 'middle' }, chart, 'no scores yet');
     return;
   }
-  SERIES.forEach(({ key, dashed }) => {
+  const series = activeSeries(points);
+  series.forEach(({ key, dashed }) => {
     let d = '';
     let pen = 'M';
     let last = null;
@@ -67,15 +75,15 @@ export function renderChart(chart, points) {
     crosshair.setAttribute('x2', x(p.env_steps));
     crosshair.setAttribute('visibility', 'visible');
     tooltip.show(`${fmt.int(p.env_steps)} env steps`, [
-      ...SERIES.map(({ key, label }) => [label, fmt.ratio(p[key])]),
+      ...series.map(({ key, label }) => [label, fmt.ratio(p[key])]),
       ['updates', fmt.int(p.updates)],
     ], null, e.clientX, e.clientY);
   });
   overlay.addEventListener('mouseleave', () => { crosshair.setAttribute('visibility', 'hidden'); tooltip.hide(); });
 }
 
-export function renderChartLegend(container) {
-  container.replaceChildren(...SERIES.map(({ key, label, dashed }) => html('span', { className: 'key' }, [
+export function renderChartLegend(container, points = []) {
+  container.replaceChildren(...activeSeries(points).map(({ key, label, dashed }) => html('span', { className: 'key' }, [
     html('span', { className: `swatch-line series-${key}${dashed ? ' dashed' : ''}` }), document.createTextNode(label),
   ])));
 }
