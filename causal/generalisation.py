@@ -35,7 +35,7 @@ from causal.cdl_trainer import CDLTrainer, with_self_edges
 from causal.factored import FactorLayout
 from causal.graph_metrics import score_graph
 from causal.planning import CEMConfig, CEMPlanner, StepFn, cdl_rollout_step
-from causal.prediction_eval import evaluate_chemical_prediction
+from causal.prediction_eval import evaluate_chemical_prediction, random_episode
 from causal.reward_model import RewardModel
 from causal.rl.base import ActionSpec
 from envs.chemical import ChemicalEnv
@@ -73,17 +73,9 @@ def random_transitions(env_kwargs: Mapping[str, Any], count: int, seed: int = 0,
     parts: dict[bool, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {False: [], True: []}
     total, episode = 0, 0
     while total < count:
-        obs, _ = env.reset(seed=seed * 1_000_003 + episode)
-        states, actions = [obs], []
-        done = False
-        while not done:
-            action = int(rng.integers(env.action_space.n))
-            obs, _, terminated, truncated, _ = env.step(action)
-            states.append(obs)
-            actions.append(action)
-            done = terminated or truncated
-        s = np.stack(states).astype(np.float32)
-        parts[bool(rng.random() < heldout_fraction)].append((s[:-1], np.array(actions, np.float32)[:, None], s[1:]))
+        observations, actions = random_episode(env, rng, seed * 1_000_003 + episode)
+        s = observations.astype(np.float32)
+        parts[bool(rng.random() < heldout_fraction)].append((s[:-1], actions.astype(np.float32)[:, None], s[1:]))
         total += len(actions)
         episode += 1
 

@@ -41,7 +41,7 @@ def chemical_prediction_data(env: ChemicalEnv, num_starts: int, max_steps: int =
     states, actions = [], []
     episode = 0
     while len(states) < num_starts:
-        obs, act = _random_episode(env, rng, seed + episode)
+        obs, act = random_episode(env, rng, seed + episode)
         episode += 1
         for t in rng.permutation(len(act) - max_steps + 1)[: num_starts - len(states)]:
             states.append(obs[t : t + max_steps + 1])
@@ -49,7 +49,8 @@ def chemical_prediction_data(env: ChemicalEnv, num_starts: int, max_steps: int =
     return PredictionData(np.stack(states), np.stack(actions)[..., None].astype(np.float32))
 
 
-def _random_episode(env: ChemicalEnv, rng: np.random.Generator, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def random_episode(env: ChemicalEnv, rng: np.random.Generator, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One episode of uniformly random actions: observations [T+1, D] and actions [T]."""
     obs, _ = env.reset(seed=seed)
     observations, actions, done = [obs], [], False
     while not done:
