@@ -247,16 +247,42 @@ def reward_inputs(abstraction: Abstraction | None, num_objects: int) -> list[int
     return [*kept, *range(state_factors, state_factors + num_objects)]
 
 
+MATCH_START_SEED = 10_000
+"""Episode i of every Match evaluation starts from ``reset(seed=MATCH_START_SEED + i)``, so planners,
+policies and random actions are compared on the same start states."""
+
+
+def acted_returns(act: Callable[[np.ndarray], int], match_kwargs: Mapping[str, Any], episodes: int) -> np.ndarray:
+    """Episode rewards of ``act`` (observation -> action index) on the evaluation start states."""
+    env = ChemicalMatchEnv(**match_kwargs)
+    returns = []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=MATCH_START_SEED + i)
+        total, done = 0.0, False
+        while not done:
+            obs, reward, terminated, truncated, _ = env.step(int(act(obs)))
+            total, done = total + reward, terminated or truncated
+        returns.append(total)
+    return np.array(returns)
+
+
+def per_setting(returns: Callable[[dict[str, Any]], np.ndarray], env_kwargs: Mapping[str, Any],
+                noise_scales: Sequence[float]) -> dict[str, list[float]]:
+    """``{"id" | "ood_<sigma>": rounded episode rewards}`` of ``returns(match_kwargs)`` per setting."""
+    return {setting: [round(float(x), 3) for x in returns(kwargs)]
+            for setting, kwargs in match_settings(env_kwargs, noise_scales).items()}
+
+
 def planned_returns(step_fn: StepFn, reward_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
                     match_kwargs: Mapping[str, Any], cfg: MatchConfig, seed: int = 0) -> np.ndarray:
     """Episode rewards of CEM acting with (``step_fn``, ``reward_fn``) on ``cfg.episodes`` Match
-    episodes (start seeds ``10_000 + i``), ``cfg.parallel`` at a time."""
+    episodes (start seeds ``MATCH_START_SEED + i``), ``cfg.parallel`` at a time."""
     returns: list[float] = []
     for first in range(0, cfg.episodes, cfg.parallel):
         envs = [ChemicalMatchEnv(**match_kwargs) for _ in range(min(cfg.parallel, cfg.episodes - first))]
         action_spec = ActionSpec.from_space(envs[0].action_space)
         planner = CEMPlanner(step_fn, reward_fn, action_spec, cfg.cem, seed=seed + first)
-        obs = np.stack([env.reset(seed=10_000 + first + i)[0] for i, env in enumerate(envs)])
+        obs = np.stack([env.reset(seed=MATCH_START_SEED + first + i)[0] for i, env in enumerate(envs)])
         totals = np.zeros(len(envs))
         live = np.ones(len(envs), dtype=bool)
         while live.any():
@@ -282,8 +308,7 @@ def planner_returns(step_fn: StepFn, inputs: Sequence[int], env_kwargs: Mapping[
     """Learn the reward predictor on ``inputs`` from ``data`` (the dynamics stay frozen), then
     ``{"id" | "ood_<sigma>": episode rewards}`` of CEM planning with ``step_fn``."""
     reward = train_reward_model(env_kwargs, inputs, data, cfg, seed)
-    return {setting: [round(float(x), 3) for x in planned_returns(step_fn, reward, kwargs, cfg, seed)]
-            for setting, kwargs in match_settings(env_kwargs, noise_scales).items()}
+    return per_setting(lambda kwargs: planned_returns(step_fn, reward, kwargs, cfg, seed), env_kwargs, noise_scales)
 
 
 def match_returns(trained: TrainedDynamics, env_kwargs: Mapping[str, Any], noise_scales: Sequence[float],
@@ -303,21 +328,12 @@ def match_returns(trained: TrainedDynamics, env_kwargs: Mapping[str, Any], noise
         kept = abstraction.kept if name == "CDL" else None
         inputs = reward_inputs(abstraction if name == "CDL" else None, num_objects)
         out[name] = planner_returns(trained.step_fns(kept)[name], inputs, env_kwargs, noise_scales, data, cfg, seed)
-    out["Random"] = {setting: [round(float(x), 3) for x in random_returns(kwargs, cfg.episodes, seed)]
-                     for setting, kwargs in match_settings(env_kwargs, noise_scales).items()}
+    out["Random"] = per_setting(lambda kwargs: random_returns(kwargs, cfg.episodes, seed), env_kwargs, noise_scales)
     return out
 
 
 def random_returns(match_kwargs: Mapping[str, Any], episodes: int, seed: int = 0) -> np.ndarray:
     """Episode rewards of uniformly random actions on the same start states as :func:`planned_returns`."""
     rng = np.random.default_rng(seed)
-    env = ChemicalMatchEnv(**match_kwargs)
-    returns = []
-    for i in range(episodes):
-        env.reset(seed=10_000 + i)
-        total, done = 0.0, False
-        while not done:
-            _, reward, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
-            total, done = total + reward, terminated or truncated
-        returns.append(total)
-    return np.array(returns)
+    actions = ChemicalMatchEnv(**match_kwargs).action_space.n
+    return acted_returns(lambda obs: rng.integers(actions), match_kwargs, episodes)

@@ -25,8 +25,8 @@ import torch
 from causal.abstraction import Abstraction
 from causal.cdl import CDLModel
 from causal.factored import FactorLayout
-from causal.generalisation import (MatchConfig, match_dataset, match_settings, planner_returns, random_returns,
-                                   reward_inputs)
+from causal.generalisation import (MatchConfig, acted_returns, match_dataset, per_setting, planner_returns,
+                                   random_returns, reward_inputs)
 from causal.planning import cdl_rollout_step
 from causal.prediction_eval import evaluate_chemical_prediction
 from envs.chemical import ChemicalEnv
@@ -101,29 +101,15 @@ def match_evaluation(model: CDLModel, report: GraphReport, env_kwargs: dict[str,
         "abstraction_kept": [report.factor_names[j] for j in kept],
         "returns": {"CEM + CDL": planner_returns(step, reward_inputs(abstraction, num_objects), env_kwargs,
                                                   cfg.match_noise_scales, data, cfg.match, cfg.seed)}}
-    settings = match_settings(env_kwargs, cfg.match_noise_scales)
     if policy is not None:
-        out["returns"]["policy"] = {name: [round(float(x), 3) for x in policy_returns(policy, kwargs, cfg.match.episodes)]
-                                    for name, kwargs in settings.items()}
-    out["returns"]["random"] = {name: [round(float(x), 3) for x in random_returns(kwargs, cfg.match.episodes, cfg.seed)]
-                                for name, kwargs in settings.items()}
+        deterministic = lambda obs: int(np.asarray(policy(obs)).reshape(-1)[0])  # noqa: E731
+        out["returns"]["policy"] = per_setting(lambda kwargs: acted_returns(deterministic, kwargs, cfg.match.episodes),
+                                               env_kwargs, cfg.match_noise_scales)
+    out["returns"]["random"] = per_setting(lambda kwargs: random_returns(kwargs, cfg.match.episodes, cfg.seed),
+                                           env_kwargs, cfg.match_noise_scales)
     out["mean"] = {who: {name: round(float(np.mean(r)), 3) for name, r in per.items()}
                    for who, per in out["returns"].items()}
     return out
-
-
-def policy_returns(policy: Callable[[np.ndarray], Any], match_kwargs: dict[str, Any], episodes: int) -> np.ndarray:
-    """Episode rewards of ``policy`` on the start states of :func:`causal.generalisation.planned_returns`."""
-    env = ChemicalMatchEnv(**match_kwargs)
-    returns = []
-    for i in range(episodes):
-        obs, _ = env.reset(seed=10_000 + i)
-        total, done = 0.0, False
-        while not done:
-            obs, reward, terminated, truncated, _ = env.step(int(np.asarray(policy(obs)).reshape(-1)[0]))
-            total, done = total + reward, terminated or truncated
-        returns.append(total)
-    return np.array(returns)
 
 
 def plot_evaluation(evaluation: dict[str, Any], path: Path) -> None:
