@@ -3,8 +3,15 @@ what CMI a run learned for them.
 
 The edges *from* ``unm`` and ``rand`` into the robot and ``mov`` exist only while they touch
 (``envs/manipulation_truth.local_graph``). This counts, over ``--steps`` steps of the env-worker's
-skill policy, the steps whose local graph has such an edge (and the steps holding ``mov``), and,
-given a run directory, prints the largest learned CMI of those columns from its ``summary.json``.
+skill policy, the steps whose local graph has such an edge (and the steps holding ``mov``). Given a
+run directory it prints, for those columns (``x``, ``y``; the constant ``z`` carries nothing):
+
+* the largest CMI the run's graph-evaluator reported (``summary.json``: held-out episodes, EMA);
+* the largest CMI of the run's last checkpointed model on the steps collected here, over all of
+  them and over only the steps touching that cube. CMI is a mean over steps, so an effect present
+  on a tenth of the steps is diluted tenfold: a high contact-step CMI with a low overall one says
+  the model learned the contact and the data are too thin in it; a low contact-step CMI says the
+  model has not learned it.
 
     python -m benchmarks.manipulation_contacts [--steps 3000] [--seed 0] [--run-dir runs/manip-long]
 """
@@ -13,47 +20,92 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from causal.cdl import CDLModel, model_from_config_json
 from envs.manipulation import ManipulationEnv
 from envs.manipulation_layout import EEF, GRP, MOV, RAND, UNM
 from envs.manipulation_truth import ACTION
 from envs.skills import SkillPolicy
+from services.runtime.checkpoint import load_checkpoint
 
 ROWS = np.r_[EEF, GRP, MOV]
-SOURCES = {"unm": np.r_[UNM], "rand": np.r_[RAND]}
+SOURCES = {"unm": np.r_[UNM][:2], "rand": np.r_[RAND][:2]}
+"""The x, y columns of each cube (z is constant in the scene's episodes)."""
 
 
-def contact_fractions(steps: int, seed: int) -> dict[str, float]:
-    """Fraction of skill-policy steps with an edge from unm / rand into robot or mov, and holding mov."""
+@dataclass
+class Collected:
+    state: np.ndarray
+    action: np.ndarray
+    next_state: np.ndarray
+    touching: dict[str, np.ndarray]
+    """Per source cube: [steps] bool, the step's local graph has an edge from it into robot or mov."""
+    holding: np.ndarray
+
+    def fractions(self) -> dict[str, float]:
+        out = {name: float(mask.mean()) for name, mask in self.touching.items()}
+        out["holding mov"] = float(self.holding.mean())
+        return out
+
+
+def collect(steps: int, seed: int) -> Collected:
+    """``steps`` steps of the skill policy, with each step's contacts from its local graph."""
     env = ManipulationEnv()
     policy = SkillPolicy(env.action_space, seed)
     obs, _ = env.reset(seed=seed)
     policy.reset()
-    counts = dict.fromkeys((*SOURCES, "holding mov"), 0)
+    states, actions, nexts, graphs = [], [], [], []
     for _ in range(steps):
-        obs, _, terminated, truncated, info = env.step(policy.act(obs))
-        graph = info["local_graph"]
-        for name, cols in SOURCES.items():
-            counts[name] += bool(graph[np.ix_(ROWS, cols)].any())
-        counts["holding mov"] += bool(graph[np.r_[MOV], ACTION].any())
+        action = policy.act(obs)
+        next_obs, _, terminated, truncated, info = env.step(action)
+        states.append(obs), actions.append(action), nexts.append(next_obs), graphs.append(info["local_graph"])
+        obs = next_obs
         if terminated or truncated:
             obs, _ = env.reset()
             policy.reset()
-    return {name: count / steps for name, count in counts.items()}
+    env.close()
+    graph = np.asarray(graphs, dtype=bool)
+    touching = {name: graph[:, ROWS][:, :, cols].any(axis=(1, 2)) for name, cols in SOURCES.items()}
+    return Collected(np.asarray(states, np.float32), np.asarray(actions, np.float32), np.asarray(nexts, np.float32),
+                     touching, graph[:, np.r_[MOV], ACTION].any(axis=1))
 
 
-def learned_cmi(run_dir: Path) -> dict[str, float]:
-    """Largest learned CMI (nats) from unm's / rand's x, y columns into robot and mov rows."""
+def reported_cmi(run_dir: Path) -> dict[str, float]:
+    """Largest CMI (nats) the run's evaluator reported from unm's / rand's x, y into robot and mov."""
     summary = json.loads((run_dir / "summary.json").read_text())
     cmi, names = np.array(summary["cmi"]), summary["factor_names"]
     out = {}
     for name in SOURCES:
         cols = [i for i, n in enumerate(names) if n.startswith(f"{name}.") and not n.endswith(".z")]
         out[name] = float(cmi[np.ix_(ROWS, cols)].max())
+    return out
+
+
+def load_run_model(run_dir: Path) -> CDLModel:
+    """The dynamics-learner's last checkpointed model, rebuilt from the config in its fingerprint."""
+    path = run_dir / "checkpoints" / "dynamics-learner-0.pt"
+    saved = load_checkpoint(path)
+    if saved is None:
+        raise FileNotFoundError(f"no dynamics-learner checkpoint at {path}")
+    model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
+    model.load_state_dict(saved["trainer"]["model"])
+    return model.eval()
+
+
+def contact_cmi(model: CDLModel, data: Collected) -> dict[str, tuple[float, float]]:
+    """Per source cube: (largest CMI over all steps, largest CMI over the steps touching it)."""
+    tensors = [torch.from_numpy(x) for x in (data.state, data.action, data.next_state)]
+    overall = model.cmi(*tensors).numpy()
+    out = {}
+    for name, cols in SOURCES.items():
+        mask = torch.from_numpy(data.touching[name])
+        local = model.cmi(*(t[mask] for t in tensors)).numpy() if mask.any() else np.zeros_like(overall)
+        out[name] = (float(overall[np.ix_(ROWS, cols)].max()), float(local[np.ix_(ROWS, cols)].max()))
     return out
 
 
@@ -65,14 +117,16 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     started = time.perf_counter()
-    fractions = contact_fractions(args.steps, args.seed)
+    data = collect(args.steps, args.seed)
     print(f"skill policy, {args.steps:,} steps, seed {args.seed} ({time.perf_counter() - started:.0f}s):")
-    for name, fraction in fractions.items():
+    for name, fraction in data.fractions().items():
         label = name if name == "holding mov" else f"touching {name}"
         print(f"  {label:<14}: {100 * fraction:5.1f}% of steps")
     if args.run_dir is not None:
-        for name, value in learned_cmi(args.run_dir).items():
-            print(f"  learned CMI, {name} -> robot/mov (max): {value:.4f} nats (threshold 0.02)")
+        reported, model = reported_cmi(args.run_dir), load_run_model(args.run_dir)
+        for name, (overall, local) in contact_cmi(model, data).items():
+            print(f"  CMI {name} -> robot/mov (max, nats; threshold 0.02): evaluator {reported[name]:.4f}; "
+                  f"checkpoint on these steps {overall:.4f}, on the steps touching {name} {local:.4f}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,9 @@
 """``make bench``: the fast benchmarks, each printing ratios against a baseline measured in the same run.
 
-(c) time-to-F1 takes up to 15 minutes per graph: ``make bench-f1`` runs it.
+The long ones have their own targets: time-to-F1 (up to 15 minutes per graph, ``make bench-f1``),
+the collection comparison (``make bench-collection``, ~1 h), the chapter-3 generalisation tables
+(``make bench-ch3``, ~33 min) and the manipulation contact diagnostics
+(``python -m benchmarks.manipulation_contacts --run-dir RUN``, needs a manipulation run).
 """
 from __future__ import annotations
 
@@ -8,7 +11,10 @@ import subprocess
 import sys
 
 FAST = [["benchmarks.bench_cdl_update"], ["benchmarks.bench_cdl_update", "--objects", "10", "--width", "32"],
-        ["benchmarks.bench_transport"], ["benchmarks.bench_transport", "--workers", "2"]]
+        ["benchmarks.bench_transport"], ["benchmarks.bench_transport", "--workers", "2"],
+        ["benchmarks.bench_masked_outputs"], ["benchmarks.bench_masked_outputs", "--graph", "chain"],
+        ["benchmarks.bench_env_worker", "--env", "chemical", "--batch-steps", "256"],
+        ["benchmarks.bench_env_worker", "--env", "manipulation", "--seconds", "20"]]
 
 
 def main() -> None:

@@ -148,8 +148,11 @@ class SkillPolicy:
     parameters to completion, then draw the next. Usable by an env-worker as ``act(obs) -> action``.
 
     Parameters: reach targets uniform over the workspace with a uniform gripper opening; grasps
-    target ``mov``; pushes a uniform cube of ``push_objects`` in a uniform direction by
-    U(0.02, 0.15) m. ``action_noise`` is the standard deviation of Gaussian noise added to the
+    target a uniform cube of ``grasp_objects``; pushes a uniform cube of ``push_objects`` in a
+    uniform direction by U(0.02, 0.15) m. Skills take the object as a parameter and do not know
+    which cube can move (as the chapter's skill-space PPO does not): a grasp of ``unm`` or ``rand``
+    closes on a cube that holds the fingers back, and the lift that follows is where the arm's
+    motion depends on those cubes for many steps in a row, the action-relevant edges of 3.3.1. ``action_noise`` is the standard deviation of Gaussian noise added to the
     displacement part of every action (diversity for dynamics learning), clipped to the space.
 
     The policy is not told about episode ends; an end-effector that jumps farther than any step
@@ -167,14 +170,15 @@ class SkillPolicy:
         action_noise: float = 0.1,
         skills: tuple[str, ...] = SKILLS,
         push_objects: tuple[str, ...] = CUBES,
+        grasp_objects: tuple[str, ...] = CUBES,
     ) -> None:
-        unknown = set(skills) - set(SKILLS) or set(push_objects) - set(CUBES)
+        unknown = set(skills) - set(SKILLS) or (set(push_objects) | set(grasp_objects)) - set(CUBES)
         if unknown:
             raise ValueError(f"unknown skills or objects {sorted(unknown)}; known: {SKILLS}, {CUBES}")
         self.low, self.high = action_space.low, action_space.high
         self.rng = np.random.default_rng(seed)
         self.max_displacement, self.action_noise = max_displacement, action_noise
-        self.skills, self.push_objects = skills, push_objects
+        self.skills, self.push_objects, self.grasp_objects = skills, push_objects, grasp_objects
         self.skill: Skill | None = None
         self._last_eef: np.ndarray | None = None
 
@@ -204,7 +208,7 @@ class SkillPolicy:
             target = self.rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
             return reach(target, float(self.rng.uniform(0.0, 1.0)), max_displacement=d)
         if name == "grasp":
-            return grasp("mov", max_displacement=d)
+            return grasp(self.grasp_objects[self.rng.integers(len(self.grasp_objects))], max_displacement=d)
         obj = self.push_objects[self.rng.integers(len(self.push_objects))]
         direction, distance = self.rng.uniform(0.0, 2 * np.pi), self.rng.uniform(0.02, 0.15)
         return push(obj, float(direction), float(distance), max_displacement=d)
