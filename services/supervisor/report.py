@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from causal.abstraction import Abstraction  # noqa: E402
+from causal.graph_metrics import binary_scores, scored_entries  # noqa: E402
 from proto.messages import GraphReport  # noqa: E402
 
 SUMMARY_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold", "best_threshold_f1",
@@ -43,7 +44,29 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
                    "identifiable_*: also without the columns of factors constant by construction",
         "history": history,
     })
+    objects = object_scores(report.adjacency, report.true_graph, report.factor_names)
+    if objects is not None:
+        out["object_level"] = objects
     return out
+
+
+def object_scores(adjacency: np.ndarray, truth: np.ndarray | None, names: tuple[str, ...]) -> dict[str, Any] | None:
+    """Accuracy, precision, recall and F1 of the object-level graph (Figure 3.5, right), scored like
+    the factor graph: every entry but an object's dependence on itself; the edges it misses and adds.
+    None without a true graph or without multi-dimensional objects (Chemical: the factor graph)."""
+    if truth is None or all("." not in n for n in names):
+        return None
+    learned, objects = object_level(adjacency, names)
+    true, _ = object_level(truth, names)
+    mask = scored_entries(true.shape)
+    learned, true = learned.astype(bool), true.astype(bool)
+    causes = objects + ["action"]
+
+    def edges(matrix: np.ndarray) -> list[str]:
+        return [f"{causes[i]} -> {objects[j]}" for j, i in zip(*np.nonzero(matrix & mask))]
+
+    return {**binary_scores(learned, true, mask), "true_edges": int(np.sum(true & mask)),
+            "missed": edges(true & ~learned), "spurious": edges(learned & ~true)}
 
 
 def write_summary(path: Path, content: dict[str, Any]) -> None:

@@ -61,3 +61,20 @@ def test_object_level_graph_collapses_factors() -> None:
     graph, objects = object_level(adjacency, names)
     assert objects == ["a", "b"]
     assert graph.tolist() == [[1, 1, 1], [0, 1, 0]]
+
+
+def test_object_scores_count_cross_object_edges_only() -> None:
+    import numpy as np
+
+    from services.supervisor.report import object_scores
+
+    names = ("a.x", "a.y", "b.x", "c.x")
+    truth = np.zeros((4, 5), dtype=np.uint8)
+    truth[0, 2] = truth[2, 4] = truth[3, 3] = 1      # b -> a, action -> b, c -> c (not scored)
+    learned = np.zeros_like(truth)
+    learned[0, 1] = learned[0, 2] = learned[3, 0] = 1  # a -> a (not scored), b -> a, a -> c (spurious)
+    scores = object_scores(learned, truth, names)
+    assert scores["true_edges"] == 2 and scores["missed"] == ["action -> b"] and scores["spurious"] == ["a -> c"]
+    assert scores["precision"] == 0.5 and scores["recall"] == 0.5 and scores["f1"] == 0.5
+    assert object_scores(learned, None, names) is None
+    assert object_scores(learned[:3, :4], truth[:3, :4], ("a", "b", "c")) is None  # Chemical: no objects
