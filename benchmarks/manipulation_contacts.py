@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causal.cdl import CDLModel, model_from_config_json
+from causal.cdl import CDLModel
 from envs.manipulation import ManipulationEnv
 from envs.manipulation_layout import EEF, GRP, MOV, RAND, UNM
 from envs.manipulation_truth import ACTION
 from envs.skills import SkillPolicy
-from services.runtime.checkpoint import load_checkpoint
+from services.supervisor.evaluation import load_cdl
 
 ROWS = np.r_[EEF, GRP, MOV]
 SOURCES = {"unm": np.r_[UNM][:2], "rand": np.r_[RAND][:2]}
@@ -86,17 +86,6 @@ def reported_cmi(run_dir: Path) -> dict[str, float]:
     return out
 
 
-def load_run_model(run_dir: Path) -> CDLModel:
-    """The dynamics-learner's last checkpointed model, rebuilt from the config in its fingerprint."""
-    path = run_dir / "checkpoints" / "dynamics-learner-0.pt"
-    saved = load_checkpoint(path)
-    if saved is None:
-        raise FileNotFoundError(f"no dynamics-learner checkpoint at {path}")
-    model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
-    model.load_state_dict(saved["trainer"]["model"])
-    return model.eval()
-
-
 def contact_cmi(model: CDLModel, data: Collected) -> dict[str, tuple[float, float]]:
     """Per source cube: (largest CMI over all steps, largest CMI over the steps touching it)."""
     tensors = [torch.from_numpy(x) for x in (data.state, data.action, data.next_state)]
@@ -123,7 +112,7 @@ def main(argv: list[str] | None = None) -> None:
         label = name if name == "holding mov" else f"touching {name}"
         print(f"  {label:<14}: {100 * fraction:5.1f}% of steps")
     if args.run_dir is not None:
-        reported, model = reported_cmi(args.run_dir), load_run_model(args.run_dir)
+        reported, model = reported_cmi(args.run_dir), load_cdl(args.run_dir)
         for name, (overall, local) in contact_cmi(model, data).items():
             print(f"  CMI {name} -> robot/mov (max, nats; threshold 0.02): evaluator {reported[name]:.4f}; "
                   f"checkpoint on these steps {overall:.4f}, on the steps touching {name} {local:.4f}")

@@ -13,6 +13,7 @@ The dense baselines are not trained by a run (the services train CDL only);
 """
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -23,8 +24,7 @@ import numpy as np
 import torch
 
 from causal.abstraction import Abstraction
-from causal.cdl import CDLModel
-from causal.factored import FactorLayout
+from causal.cdl import CDLModel, model_from_config_json
 from causal.generalisation import (MatchConfig, acted_returns, match_dataset, per_setting, planner_returns,
                                    random_returns, reward_inputs)
 from causal.planning import cdl_rollout_step
@@ -50,14 +50,14 @@ class EvaluationConfig:
     seed: int = 12345
 
 
-def evaluate_run(run_dir: Path, env: str, env_kwargs: dict[str, Any], learner_cdl_config: Any, report: GraphReport,
+def evaluate_run(run_dir: Path, env: str, env_kwargs: dict[str, Any], report: GraphReport,
                  policy: Callable[[np.ndarray], Any] | None = None, cfg: EvaluationConfig = EvaluationConfig(),
                  ) -> dict[str, Any]:
     """``{"prediction": {...}, "match": {...}}`` for a Chemical run, from its checkpoints.
 
     ``policy`` (observation -> action), when given on a Match run, is evaluated beside CEM."""
     env_cls = CHEMICAL_ENVS[env]
-    model = load_cdl(run_dir, env_cls(**env_kwargs), learner_cdl_config)
+    model = load_cdl(run_dir)
     graph = torch.from_numpy(report.adjacency.astype(bool))
     started = time.perf_counter()
     accuracy = evaluate_chemical_prediction(cdl_rollout_step(model, graph), env_kwargs, cfg.noise_scales,
@@ -72,13 +72,14 @@ def evaluate_run(run_dir: Path, env: str, env_kwargs: dict[str, Any], learner_cd
     return out
 
 
-def load_cdl(run_dir: Path, env: ChemicalEnv, cdl_config: Any) -> CDLModel:
-    """The dynamics-learner's last checkpointed CDL model."""
+def load_cdl(run_dir: Path) -> CDLModel:
+    """The dynamics-learner's last checkpointed CDL model, rebuilt from the model config that the
+    checkpoint's fingerprint carries (so any run's checkpoint loads without its service config)."""
     path = run_dir / "checkpoints" / "dynamics-learner-0.pt"
     saved = load_checkpoint(path)
     if saved is None:
         raise FileNotFoundError(f"no dynamics-learner checkpoint at {path}")
-    model = CDLModel(FactorLayout.from_spec(env.env_spec()), cdl_config)
+    model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
     model.load_state_dict(saved["trainer"]["model"])
     return model.eval()
 

@@ -371,8 +371,7 @@ class Supervisor:
                                    + (", Match" if cfg.task == "match" else "") + ") ...\n")
         try:
             policy = load_policy(self.run_dir, configs["policy-learner"], cfg) if cfg.collector != "random" else None
-            return evaluate_run(self.run_dir, cfg.env, env_kwargs(configs["env-worker"]),
-                                configs["dynamics-learner"].cdl(), report, policy)
+            return evaluate_run(self.run_dir, cfg.env, env_kwargs(configs["env-worker"]), report, policy)
         except Exception as exc:  # noqa: BLE001 - reported in the summary
             log.exception("post-run evaluation failed")
             return {"error": f"{type(exc).__name__}: {exc}"}

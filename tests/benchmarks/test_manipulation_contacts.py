@@ -7,11 +7,12 @@ import json
 import numpy as np
 import torch
 
-from benchmarks.manipulation_contacts import ROWS, SOURCES, Collected, contact_cmi, load_run_model
+from benchmarks.manipulation_contacts import ROWS, SOURCES, Collected, contact_cmi
 from causal.cdl import CDLConfig, CDLModel, model_config_json
 from causal.factored import FactorLayout
 from envs.manipulation_layout import FACTOR_NAMES, NUM_FACTORS
 from services.runtime.checkpoint import save_checkpoint
+from services.supervisor.evaluation import load_cdl
 
 LAYOUT = FactorLayout(names=FACTOR_NAMES, kinds=("continuous",) * NUM_FACTORS, sizes=(1,) * NUM_FACTORS,
                       locs=(0.0,) * NUM_FACTORS, scales=(0.1,) * NUM_FACTORS, action_kind="continuous",
@@ -19,13 +20,13 @@ LAYOUT = FactorLayout(names=FACTOR_NAMES, kinds=("continuous",) * NUM_FACTORS, s
 CFG = CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)
 
 
-def test_load_run_model_rebuilds_the_checkpointed_model(tmp_path) -> None:
+def test_load_cdl_rebuilds_the_checkpointed_model(tmp_path) -> None:
     torch.manual_seed(0)
     model = CDLModel(LAYOUT, CFG)
     fingerprint = json.dumps({"env": "manipulation", "model": json.loads(model_config_json(LAYOUT, CFG))})
     save_checkpoint({"fingerprint": fingerprint, "trainer": {"model": model.state_dict()}},
                     tmp_path / "checkpoints" / "dynamics-learner-0.pt")
-    loaded = load_run_model(tmp_path)
+    loaded = load_cdl(tmp_path)
     for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
         torch.testing.assert_close(a, b, msg=name)
     assert not loaded.training
