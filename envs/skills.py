@@ -24,6 +24,12 @@ from envs.manipulation_layout import EEF, FIXED_HALF, MOV_HALF, TABLE_TOP, WORKS
 
 SKILLS = ("reach", "grasp", "push")
 CUBES = ("mov", "unm", "rand")
+OPTIONS: tuple[tuple[str, str | None], ...] = (("reach", None),) + tuple(
+    (skill, obj) for skill in ("grasp", "push") for obj in CUBES)
+"""The skill action space of a policy that acts over skills (the chapter's PPO over skills): a
+skill and its object; the continuous parameters (reach target and opening, push direction and
+distance) stay uniformly random, drawn when the option is taken."""
+OPTION_NAMES = tuple(skill if obj is None else f"{skill}:{obj}" for skill, obj in OPTIONS)
 HOVER = 0.08
 """Height above a cube's centre from which grasps and pushes start (m)."""
 LIFT = 0.12
@@ -144,22 +150,29 @@ def push(obj: str = "mov", direction: float = 0.0, distance: float = 0.1, *, max
 
 
 class SkillPolicy:
-    """The "Uniform" collection policy: run a uniformly random skill with uniformly random
-    parameters to completion, then draw the next. Usable by an env-worker as ``act(obs) -> action``.
+    """Runs skills to completion, one after another: usable by an env-worker as ``act(obs) -> action``.
 
-    Parameters: reach targets uniform over the workspace with a uniform gripper opening; grasps
-    target a uniform cube of ``grasp_objects``; pushes a uniform cube of ``push_objects`` in a
-    uniform direction by U(0.02, 0.15) m. Skills take the object as a parameter and do not know
-    which cube can move (as the chapter's skill-space PPO does not): a grasp of ``unm`` or ``rand``
-    closes on a cube that holds the fingers back, and the lift that follows is where the arm's
-    motion depends on those cubes for many steps in a row, the action-relevant edges of 3.3.1. ``action_noise`` is the standard deviation of Gaussian noise added to the
-    displacement part of every action (diversity for dynamics learning), clipped to the space.
+    Which skill comes next is an *option* (an index into :data:`OPTIONS`), chosen by ``chooser(obs)``
+    when one is given (a policy over skills, the chapter's PPO) and otherwise by the chapter's
+    "Uniform" policy: a uniformly random skill of ``skills``, grasps of a uniform cube of
+    ``grasp_objects``, pushes of a uniform cube of ``push_objects``. :attr:`last_option` is the option
+    chosen by the last :meth:`act` (-1 while a skill runs on), so the steps where a decision was made
+    can be marked in the data. Parameters are uniform: reach targets over the workspace with a
+    uniform gripper opening, pushes in a uniform direction by U(0.02, 0.15) m. Skills take the object
+    as a parameter and do not know which cube can move (as the chapter's skill-space PPO does not): a
+    grasp of ``unm`` or ``rand`` closes on a cube that holds the fingers back, and the lift that
+    follows is where the arm's motion depends on those cubes for many steps in a row, the
+    action-relevant edges of 3.3.1. ``action_noise`` is the standard deviation of Gaussian noise
+    added to the displacement part of every action (diversity for dynamics learning), clipped to
+    the space.
 
-    The policy is not told about episode ends; an end-effector that jumps farther than any step
-    can move it (the arm was reset) drops the running skill, as does :meth:`reset`.
+    The env-worker calls :meth:`reset` at episode ends; as a fallback for callers that do not, an
+    end-effector that jumps farther than any step can move it (the arm was reset) also drops the
+    running skill.
     """
 
     version = 0
+    over_skills = True
 
     def __init__(
         self,
@@ -171,6 +184,7 @@ class SkillPolicy:
         skills: tuple[str, ...] = SKILLS,
         push_objects: tuple[str, ...] = CUBES,
         grasp_objects: tuple[str, ...] = CUBES,
+        chooser: Callable[[np.ndarray], int] | None = None,
     ) -> None:
         unknown = set(skills) - set(SKILLS) or (set(push_objects) | set(grasp_objects)) - set(CUBES)
         if unknown:
@@ -179,7 +193,9 @@ class SkillPolicy:
         self.rng = np.random.default_rng(seed)
         self.max_displacement, self.action_noise = max_displacement, action_noise
         self.skills, self.push_objects, self.grasp_objects = skills, push_objects, grasp_objects
+        self.chooser = chooser
         self.skill: Skill | None = None
+        self.last_option = -1
         self._last_eef: np.ndarray | None = None
 
     def reset(self) -> None:
@@ -191,9 +207,11 @@ class SkillPolicy:
         if self._last_eef is not None and np.linalg.norm(eef - self._last_eef) > RESET_JUMP:
             self.skill = None
         self._last_eef = eef
+        self.last_option = -1
         for _ in range(10):  # a skill whose every phase is already satisfied yields no action
             if self.skill is None:
-                self.skill = self.sample_skill()
+                self.last_option = self.choose(observation)
+                self.skill = self.build(self.last_option)
             action = self.skill.act(observation)
             if action is not None:
                 noise = np.r_[self.rng.normal(0.0, self.action_noise, 3), 0.0] if self.action_noise else 0.0
@@ -201,14 +219,35 @@ class SkillPolicy:
             self.skill = None
         return np.r_[0.0, 0.0, 0.0, 1.0].astype(np.float32)
 
-    def sample_skill(self) -> Skill:
+    def choose(self, observation: np.ndarray) -> int:
+        """The next option: ``chooser``'s, or the Uniform policy's."""
+        if self.chooser is not None:
+            option = int(self.chooser(observation))
+            if not 0 <= option < len(OPTIONS):
+                raise ValueError(f"option {option} out of range: {len(OPTIONS)} options {OPTION_NAMES}")
+            return option
+        return self.uniform_option()
+
+    def uniform_option(self) -> int:
+        """An option of the Uniform policy: a uniform skill, then a uniform object for it."""
         name = self.skills[self.rng.integers(len(self.skills))]
+        if name == "reach":
+            return 0
+        objects = self.grasp_objects if name == "grasp" else self.push_objects
+        return OPTIONS.index((name, objects[self.rng.integers(len(objects))]))
+
+    def sample_skill(self) -> Skill:
+        """A skill of the Uniform policy."""
+        return self.build(self.uniform_option())
+
+    def build(self, option: int) -> Skill:
+        """The skill of ``option`` with uniformly random parameters."""
+        name, obj = OPTIONS[option]
         d = self.max_displacement
         if name == "reach":
             target = self.rng.uniform(WORKSPACE_LOW, WORKSPACE_HIGH)
             return reach(target, float(self.rng.uniform(0.0, 1.0)), max_displacement=d)
         if name == "grasp":
-            return grasp(self.grasp_objects[self.rng.integers(len(self.grasp_objects))], max_displacement=d)
-        obj = self.push_objects[self.rng.integers(len(self.push_objects))]
+            return grasp(obj, max_displacement=d)
         direction, distance = self.rng.uniform(0.0, 2 * np.pi), self.rng.uniform(0.02, 0.15)
         return push(obj, float(direction), float(distance), max_displacement=d)

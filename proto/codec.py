@@ -281,7 +281,7 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "state": _F32_2D, "action": _F32_2D, "reward": _F32_1D, "next_state": _F32_2D,
         "terminated": _array("bool", ndim=1), "truncated": _array("bool", ndim=1),
         "episode_id": _array("int64", ndim=1), "step": _array("int32", ndim=1),
-        "local_graph": _optional(_array("uint8", ndim=3)),
+        "local_graph": _optional(_array("uint8", ndim=3)), "option": _optional(_array("int32", ndim=1)),
     },
     ScoredBatch: {
         "transitions": _nested(TransitionBatch), "intrinsic_reward": _F32_1D,
@@ -354,6 +354,9 @@ def _check_transitions(m: TransitionBatch) -> None:
     if m.local_graph is not None:
         d = m.local_graph.shape[1]
         _check_graph(m.local_graph, (steps, d, d + 1), "TransitionBatch.local_graph")
+    if m.option is not None:
+        _require(m.option.shape == (steps,), "inconsistent", f"TransitionBatch.option: shape {m.option.shape}")
+        _require(bool((m.option >= -1).all()), "bad_array", "TransitionBatch.option: below -1")
     _check_counters(m, "seq", "policy_version")
     ok = _KEY_SEGMENT.fullmatch(m.worker_id) is not None
     _require(ok, "bad_field", f"TransitionBatch.worker_id: {_short(m.worker_id)}")

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -85,6 +85,9 @@ class TransitionBatch:
     """int32 [T]; index of the step within its episode"""
     local_graph: np.ndarray | None = None
     """uint8 [T, d_S, d_S + 1] ground-truth local graphs, when the simulator can tell"""
+    option: np.ndarray | None = None
+    """int32 [T], when the collection policy acts over skills: the option (skill index) chosen at this
+    step, -1 where the running skill goes on (schema version 2)"""
 
     def __len__(self) -> int:
         return int(self.state.shape[0])

@@ -26,10 +26,14 @@ class RandomPolicy:
     """Uniformly random actions (the chapter's collection policy for Chemical)."""
 
     version = 0
+    over_skills = False
 
     def __init__(self, action_space, seed: int) -> None:
         self.space = action_space
         self.space.seed(seed)
+
+    def reset(self) -> None:
+        pass
 
     def act(self, observation: np.ndarray) -> np.ndarray:
         return np.atleast_1d(np.asarray(self.space.sample(), dtype=np.float32))
@@ -48,11 +52,14 @@ def default_policy(env: str, action_space, seed: int):
 class PolicyActor:
     """Acts with the newest policy weights loaded; ``version`` is theirs (0: none loaded yet).
 
+    A policy over skills (its config names ``options``) picks the next skill whenever one ends and a
+    :class:`~envs.skills.SkillPolicy` runs it; loading newer weights keeps the running skill.
     torch is imported with the first weights, so a worker that never follows a policy starts fast."""
 
-    def __init__(self, obs_dim: int, seed: int) -> None:
-        self.obs_dim, self.seed = obs_dim, seed
+    def __init__(self, obs_dim: int, seed: int, action_space=None) -> None:
+        self.obs_dim, self.seed, self.action_space = obs_dim, seed, action_space
         self.agent: Agent | None = None
+        self.skills = None
         self.config_json = ""
         self.version = 0
 
@@ -60,16 +67,46 @@ class PolicyActor:
         """Take ``weights`` if newer than the current ones (ValueError if they do not fit this env)."""
         if weights.version <= self.version:
             return False
-        from services.policy_learner.policy_weights import agent_from_config_json, import_policy
+        from services.policy_learner.policy_weights import agent_from_config_json, import_policy, policy_options
 
-        agent = self.agent
+        agent, skills = self.agent, self.skills
         if weights.config_json != self.config_json:
             agent = agent_from_config_json(weights.config_json, self.seed, self.obs_dim)
+            skills = self._skill_runner(policy_options(weights.config_json))
         import_policy(agent, weights.tensors)
-        self.agent, self.config_json, self.version = agent, weights.config_json, weights.version
+        self.agent, self.skills, self.config_json, self.version = agent, skills, weights.config_json, weights.version
         return True
 
+    def _skill_runner(self, options: tuple[str, ...]):
+        if not options:
+            return None
+        from envs.skills import OPTION_NAMES, SkillPolicy
+
+        if options != OPTION_NAMES or self.action_space is None:
+            raise ValueError(f"policy over skills {list(options)}; this worker runs {list(OPTION_NAMES)}"
+                             if self.action_space is not None else "policy over skills for an env without them")
+        if self.skills is not None:
+            return self.skills
+        return SkillPolicy(self.action_space, self.seed, chooser=self._choose)
+
+    def _choose(self, observation: np.ndarray) -> int:
+        return int(np.asarray(self.agent.act(observation)).reshape(-1)[0])
+
+    @property
+    def over_skills(self) -> bool:
+        return self.skills is not None
+
+    @property
+    def last_option(self) -> int:
+        return self.skills.last_option if self.skills is not None else -1
+
+    def reset(self) -> None:
+        if self.skills is not None:
+            self.skills.reset()
+
     def act(self, observation: np.ndarray) -> np.ndarray:
+        if self.skills is not None:
+            return self.skills.act(observation)
         return np.atleast_1d(np.asarray(self.agent.act(observation), dtype=np.float32))
 
 
@@ -93,7 +130,8 @@ class EnvWorkerCore:
         self.spec: EnvSpec = self.env.unwrapped.env_spec()
         seed = cfg.seed + cfg.worker_index
         self.random_policy = default_policy(cfg.env, self.env.action_space, seed)
-        self.actor = PolicyActor(self.spec.state_dim, seed)
+        skills = cfg.env == "manipulation"
+        self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space if skills else None)
         self.observation, _ = self.env.reset(seed=seed)
         self.episode, self.step_in_episode = 0, 0
         self.env_steps, self.seq = 0, 0
@@ -117,8 +155,11 @@ class EnvWorkerCore:
         episode, step = np.empty(steps, np.int64), np.empty(steps, np.int32)
         graphs = np.empty((steps, self.spec.num_factors, self.spec.num_factors + 1), np.uint8) if self.cfg.local_graphs else None
         policy = self.policy
+        option = np.full(steps, -1, np.int32) if policy.over_skills else None
         for t in range(steps):
             act = policy.act(self.observation)
+            if option is not None:
+                option[t] = policy.last_option
             env_action = int(act[0]) if self.spec.action_kind == "categorical" else act
             obs, r, term, trunc, info = self.env.step(env_action)
             state[t], action[t], reward[t], next_state[t] = self.observation, act, r, obs
@@ -128,12 +169,13 @@ class EnvWorkerCore:
             self.step_in_episode += 1
             self.observation = obs
             if term or trunc:
+                policy.reset()  # a policy over skills starts the next episode with a fresh decision
                 self.observation, _ = self.env.reset()
                 self.episode, self.step_in_episode = self.episode + 1, 0
         self.env_steps += steps
         batch = TransitionBatch(worker_id=self.worker_id, seq=self.seq, policy_version=policy.version,
                                 state=state, action=action, reward=reward, next_state=next_state,
                                 terminated=terminated, truncated=truncated, episode_id=episode, step=step,
-                                local_graph=graphs)
+                                local_graph=graphs, option=option)
         self.seq += 1
         return batch

@@ -5,6 +5,8 @@ import logging
 import sys
 import time
 
+import numpy as np
+
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
 from proto.messages import Weights
@@ -34,6 +36,11 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     episodes = shell.metrics.counter("causeway_env_episodes", "Episodes finished")
     batches = shell.metrics.counter("causeway_transition_batches_published", "TransitionBatches published")
     sent = shell.metrics.counter("causeway_transition_bytes_published", "Bytes of TransitionBatches published")
+    options = shell.metrics.counter("causeway_skill_options_chosen",
+                                    "Skills started by a collection policy over skills, by option and policy "
+                                    "(uniform: the chapter's Uniform skills; learned: published policy weights)",
+                                    ("option", "policy"))
+    chosen: dict[str, int] = {}
     publish_seconds = shell.metrics.histogram("causeway_publish_seconds", "Time to publish one batch",
                                               (0.0005, 0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0))
     spec_value = shell.transport.serve_latest(topics.env_spec(cfg.run_id))
@@ -57,13 +64,17 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             batches.inc()
             episodes.inc(core.episode - last_episode)
             last_episode = core.episode
-            shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": batch.policy_version})
+            for (option, policy), n in option_counts(batch).items():
+                options.labels(option=option, policy=policy).inc(n)
+                chosen[f"options_{policy}_{option}"] = chosen.get(f"options_{policy}_{option}", 0) + n
+            shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": batch.policy_version,
+                        **chosen})
             if cfg.max_steps and core.env_steps >= cfg.max_steps:
                 break
             _throttle(cfg.max_steps_per_second, core.env_steps, started)
     finally:
-        shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": core.policy.version},
-                   force=True)
+        shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": core.policy.version,
+                    **chosen}, force=True)
         spec_value.close()
         shell.close()
 
@@ -120,6 +131,17 @@ class _PolicyFollower:
         else:
             log.info("acting with policy v%d from now on", weights.version)
         self.in_use.set(weights.version)
+
+
+def option_counts(batch) -> dict[tuple[str, str], int]:
+    """Skills started in ``batch`` by (option name, ``uniform`` or ``learned``); {} without options."""
+    if batch.option is None:
+        return {}
+    from envs.skills import OPTION_NAMES
+
+    counts = np.bincount(batch.option[batch.option >= 0], minlength=len(OPTION_NAMES))
+    policy = "learned" if batch.policy_version > 0 else "uniform"
+    return {(OPTION_NAMES[i], policy): int(n) for i, n in enumerate(counts) if n}
 
 
 def _throttle(rate: float, done: int, started: float) -> None:

@@ -14,6 +14,9 @@ class PolicyLearnerConfig(ServiceConfig):
     """policy-learner: PPO (discrete or continuous actions) or SAC (continuous) behind one interface."""
 
     algo: str = doc("ppo", "ppo or sac")
+    skills: bool = doc(False, "PPO over the env's skill options (envs.skills.OPTIONS; manipulation) instead of raw "
+                              "actions: one decision per skill, its return the sum of the skill's step rewards")
+    skill_rollout: int = doc(16, "skills: consecutive decisions of one worker per PPO column")
     seed: int = doc(0, "seed of the policy initialisation and sampling")
     scored: bool = doc(False, "learn from ScoredBatches (scored/*, with intrinsic rewards) instead of transitions/*")
     extrinsic_coef: float = doc(1.0, "weight of the environment reward")
@@ -41,6 +44,8 @@ class PolicyLearnerConfig(ServiceConfig):
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
+        if self.skills and self.algo != "ppo":
+            raise ValueError("a policy over skills is learned with PPO (algo=ppo)")
         if self.max_policy_lag < 0:
             raise ValueError("max_policy_lag must be >= 0")
 

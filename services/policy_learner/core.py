@@ -8,6 +8,11 @@ PPO is on-policy: it needs the behaviour log-probabilities of the actions, which
 carry. The learner keeps the published policies still within the lag bound and recomputes them
 exactly with the version that produced the batch (random-policy data is dropped for PPO); the
 values are the current critic's, as in IMPALA-style actor-learners.
+
+With ``skills`` the policy acts over the skill options of :mod:`envs.skills` (the chapter's PPO over
+skills on manipulation): a categorical PPO whose steps are decisions stitched from the batches by
+:class:`~services.policy_learner.options.OptionStitcher`; a segment is ``skill_rollout`` decisions
+of one worker.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ from causal.rl.ppo import ActorCritic
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
 from services.policy_learner.config import PolicyLearnerConfig
+from services.policy_learner.options import Decision, OptionStitcher
 from services.policy_learner.policy_weights import MODEL, export_policy, policy_config_json
 from services.runtime.checkpoint import load_checkpoint, save_checkpoint
 
@@ -54,12 +60,36 @@ class _Segment:
     next_obs: torch.Tensor
 
 
+@torch.no_grad()
+def _log_probs(net: ActorCritic, obs: np.ndarray, options: np.ndarray) -> np.ndarray:
+    return net.distribution(torch.from_numpy(obs)).log_prob(torch.from_numpy(options).long()).numpy()
+
+
+def _decision_segment(run: list[Decision]) -> _Segment:
+    """Consecutive decisions of one worker as one PPO column (a decision is one step)."""
+    flags = torch.tensor([[d.done, d.truncated] for d in run])
+    return _Segment(torch.from_numpy(np.stack([d.obs for d in run])), torch.tensor([d.option for d in run]),
+                    torch.tensor([d.log_prob for d in run], dtype=torch.float32),
+                    torch.tensor([d.reward for d in run], dtype=torch.float32), flags[:, 0], flags[:, 1],
+                    torch.from_numpy(np.stack([d.next_obs for d in run])))
+
+
 def _stack(segments: list[_Segment], name: str) -> torch.Tensor:
     """One field of every segment as the columns of a time-major ``[T, N, ...]`` tensor."""
     return torch.stack([getattr(s, name) for s in segments], dim=1)
 
 
+def skill_options(cfg: PolicyLearnerConfig) -> tuple[str, ...]:
+    """The names of the options a policy over skills picks among (() for raw actions)."""
+    if not cfg.skills:
+        return ()
+    from envs.skills import OPTION_NAMES
+    return OPTION_NAMES
+
+
 def action_spec(spec: EnvSpec, cfg: PolicyLearnerConfig) -> ActionSpec:
+    if cfg.skills:
+        return ActionSpec("categorical", len(skill_options(cfg)))
     if spec.action_kind == "categorical":
         return ActionSpec("categorical", spec.action_size)
     return ActionSpec("continuous", spec.action_size, (cfg.action_low,) * spec.action_size,
@@ -73,6 +103,8 @@ class PolicyLearnerCore:
         self.cfg, self.spec = cfg, spec
         self.layout = FactorLayout.from_spec(spec)
         self.action = action_spec(spec, cfg)
+        self.options = skill_options(cfg)
+        self.stitcher = OptionStitcher(cfg.skill_rollout) if cfg.skills else None
         if cfg.algo == "ppo":
             self.agent: PPOAgent | SACAgent = PPOAgent(spec.state_dim, self.action, cfg.ppo(), seed=cfg.seed)
         else:
@@ -107,7 +139,11 @@ class PolicyLearnerCore:
         reward = self.cfg.extrinsic_coef * batch.reward
         if intrinsic is not None:
             reward = reward + self.cfg.intrinsic_coef * intrinsic
-        if isinstance(self.agent, PPOAgent):
+        if self.stitcher is not None:
+            net = self.behaviour[batch.policy_version]
+            runs = self.stitcher.add(batch, reward, lambda obs, opt: _log_probs(net, obs, opt))
+            self.pending.extend(_decision_segment(run) for run in runs)
+        elif isinstance(self.agent, PPOAgent):
             self.pending.append(self._segment(batch, reward.astype(np.float32)))
         else:
             self.replay.add(batch.state, batch.action, reward, batch.next_state, batch.terminated)
@@ -178,7 +214,8 @@ class PolicyLearnerCore:
                 del self.behaviour[old]
         hidden = (self.cfg.hidden, self.cfg.hidden)
         return Weights(model=MODEL, version=self.version, tensors=export_policy(self.agent),
-                       config_json=policy_config_json(self.cfg.algo, self.spec.state_dim, self.action, hidden),
+                       config_json=policy_config_json(self.cfg.algo, self.spec.state_dim, self.action, hidden,
+                                                      self.options),
                        updates=self.updates, env_steps=self.env_steps)
 
     def apply_graph(self, report: GraphReport) -> bool:
@@ -219,5 +256,7 @@ class PolicyLearnerCore:
     def progress(self) -> dict[str, float]:
         return {"policy_version": self.version, "updates": self.updates, "env_steps": self.env_steps,
                 "replay_size": len(self.replay), "pending_batches": len(self.pending),
+                **({"decisions": self.stitcher.decisions, "decisions_discarded": self.stitcher.discarded}
+                   if self.stitcher is not None else {}),
                 **{f"dropped_{k}": v for k, v in self.dropped.items()},
                 **{f"lag_{k}": v for k, v in self.lags.items()}, **self.last_stats}

@@ -2,7 +2,8 @@
 
 ``Weights(model="policy")`` carries the acting part of an agent (PPO: the actor-critic; SAC: the
 actor), its input mask included, and a config naming the algorithm, observation width, action space
-and hidden widths. Pure (no bus): the env-worker imports it to act with the newest policy.
+and hidden widths. A policy over skills (``options``: the names of :data:`envs.skills.OPTION_NAMES`)
+is a categorical policy whose action picks the next skill; the env-worker runs the skills. Pure (no bus): the env-worker imports it to act with the newest policy.
 """
 from __future__ import annotations
 
@@ -18,9 +19,18 @@ MODEL = "policy"
 Agent = PPOAgent | SACAgent
 
 
-def policy_config_json(algo: str, obs_dim: int, action: ActionSpec, hidden: tuple[int, ...]) -> str:
-    return json.dumps({"model": MODEL, "algo": algo, "obs_dim": obs_dim, "action": dataclasses.asdict(action),
-                       "hidden": list(hidden)}, sort_keys=True)
+def policy_config_json(algo: str, obs_dim: int, action: ActionSpec, hidden: tuple[int, ...],
+                       options: tuple[str, ...] = ()) -> str:
+    config = {"model": MODEL, "algo": algo, "obs_dim": obs_dim, "action": dataclasses.asdict(action),
+              "hidden": list(hidden)}
+    if options:
+        config["options"] = list(options)
+    return json.dumps(config, sort_keys=True)
+
+
+def policy_options(text: str) -> tuple[str, ...]:
+    """The skill options a published policy chooses among (() for a policy over raw actions)."""
+    return tuple(json.loads(text).get("options", ()))
 
 
 def acting_module(agent: Agent) -> torch.nn.Module:

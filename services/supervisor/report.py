@@ -184,8 +184,18 @@ def policy_summary(stats: dict[tuple[str, str], dict[str, float]],
                    timeline: list[tuple[float, str, str, float]]) -> dict[str, Any]:
     """The weight broadcast at the end of a run with a policy: the last published version, the
     version each env-worker acted with, the policy-lag distribution of the batches the
-    policy-learner received and its drops by reason (from the services' last stats beats)."""
+    policy-learner received and its drops by reason (from the services' last stats beats); for a
+    policy over skills also the skills started, summed over workers, by the Uniform warm-up policy
+    and by the learned one, and the decisions the learner stitched."""
     learner = next((v for (service, _), v in stats.items() if service == "policy-learner"), {})
+    options: dict[str, dict[str, int]] = {}
+    for (service, _), values in sorted(stats.items()):
+        for key, n in values.items():
+            if service == "env-worker" and key.startswith("options_"):
+                policy, option = key[len("options_"):].split("_", 1)
+                options.setdefault(policy, {})[option] = options.get(policy, {}).get(option, 0) + int(n)
+    extra = {"skill_options": options, "decisions": int(learner.get("decisions", 0)),
+             "decisions_discarded": int(learner.get("decisions_discarded", 0))} if options else {}
     lags = {key[4:]: int(v) for key, v in learner.items() if key.startswith("lag_")}
     order = sorted((k for k in lags if k.isdigit()), key=int) + [k for k in ("over", "future") if k in lags]
     return {
@@ -195,6 +205,7 @@ def policy_summary(stats: dict[tuple[str, str], dict[str, float]],
         "lag_histogram": {k: lags[k] for k in order},
         "dropped": {key[8:]: int(v) for key, v in learner.items() if key.startswith("dropped_")},
         "version_timeline": [[round(t, 2), f"{service}/{inst}", int(v)] for t, service, inst, v in timeline],
+        **extra,
     }
 
 

@@ -35,6 +35,7 @@ def transitions(t: int = 4, s: int = 3, a: int = 2, d: int = 2) -> TransitionBat
         terminated=np.arange(t) == t - 1, truncated=np.zeros(t, bool),
         episode_id=np.full(t, 11, np.int64), step=np.arange(t, dtype=np.int32),
         local_graph=rng.integers(0, 2, size=(t, d, d + 1), dtype=np.uint8),
+        option=np.r_[2, -1, -1, 0][:t].astype(np.int32),
     )
 
 

@@ -78,6 +78,7 @@ def transition_batches(draw: Any) -> TransitionBatch:
         terminated=draw(hnp.arrays(bool, t)), truncated=draw(hnp.arrays(bool, t)),
         episode_id=draw(hnp.arrays(np.int64, t)), step=draw(hnp.arrays(np.int32, t)),
         local_graph=draw(st.none() | graphs(t, d, d + 1)),
+        option=draw(st.none() | hnp.arrays(np.int32, t, elements=st.integers(-1, 6))),
     )
 
 

@@ -26,6 +26,14 @@ def test_policy_run_starts_the_policy_services_and_workers_follow() -> None:
     assert set(learning_services(cfg)) <= set(MODULES)
     plain = resolve(RunConfig(router_port=7447, collector="ppo"))
     assert learning_services(plain)[-1] == "policy-learner" and not service_configs(plain, "x")["policy-learner"].scored
+    assert not service_configs(plain, "x")["policy-learner"].skills
+
+
+def test_ppo_on_manipulation_acts_over_skills_and_sac_over_motor_actions() -> None:
+    ppo = resolve(RunConfig(router_port=7447, env="manipulation", collector="ppo", intrinsic="preddiff"))
+    assert service_configs(ppo, "x")["policy-learner"].skills  # the chapter's PPO over skills with PredDiff
+    sac = resolve(RunConfig(router_port=7447, env="manipulation", collector="sac"))
+    assert not service_configs(sac, "x")["policy-learner"].skills
 
 
 @pytest.mark.parametrize("bad", [dict(collector="dqn"), dict(intrinsic="elden", collector="ppo"), dict(task="push"),

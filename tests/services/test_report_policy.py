@@ -19,6 +19,16 @@ def test_policy_summary_reads_the_last_beats() -> None:
     assert list(out["lag_histogram"].items()) == [("0", 30), ("1", 12), ("10", 1), ("over", 2)]  # numeric order
     assert out["dropped"] == {"stale": 2, "random_policy": 5}
     assert out["version_timeline"] == [[1.0, "policy-learner/0", 1], [1.5, "env-worker/0", 1]]
+    assert "skill_options" not in out
+
+
+def test_policy_summary_sums_the_skills_workers_started() -> None:
+    stats = {("policy-learner", "0"): {"policy_version": 3.0, "decisions": 40.0, "decisions_discarded": 1.0},
+             ("env-worker", "0"): {"options_uniform_reach": 4.0, "options_learned_grasp:unm": 9.0},
+             ("env-worker", "1"): {"options_learned_grasp:unm": 2.0, "options_learned_push:mov": 1.0}}
+    out = policy_summary(stats, [])
+    assert out["skill_options"] == {"learned": {"grasp:unm": 11, "push:mov": 1}, "uniform": {"reach": 4}}
+    assert (out["decisions"], out["decisions_discarded"]) == (40, 1)
 
 
 def test_plot_policy_writes_a_png(tmp_path: Path) -> None:
