@@ -26,7 +26,14 @@ COMMON_METRICS = {
 }
 ENV_WORKER_METRICS = {
     "causeway_env_steps_total", "causeway_env_episodes_total", "causeway_transition_batches_published_total",
-    "causeway_transition_bytes_published_total", "causeway_publish_seconds",
+    "causeway_transition_bytes_published_total", "causeway_publish_seconds", "causeway_skill_options_chosen_total",
+}
+FOLLOWER_METRICS = {  # env-workers that follow a policy (--collector ppo/sac)
+    "causeway_policy_version_in_use", "causeway_policy_weights_loaded_total", "causeway_policy_versions_skipped_total",
+}
+POLICY_LEARNER_METRICS = {
+    "causeway_policy_updates_total", "causeway_policy_version", "causeway_policy_lag_versions",
+    "causeway_policy_dropped_total", "causeway_policy_update_seconds", "causeway_policy_weights_bytes_published_total",
 }
 LEARNER_METRICS = {
     "causeway_dynamics_updates_total", "causeway_dynamics_nll_nats", "causeway_replay_transitions",
@@ -42,8 +49,10 @@ EVALUATOR_METRICS = {
     "causeway_graph_env_steps", "causeway_graph_eval_seconds", "causeway_graph_identifiable_accuracy_ratio",
     "causeway_graph_identifiable_f1_ratio", "causeway_graph_identifiable_best_threshold_f1_ratio",
 }
-HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds"}
-KNOWN_METRICS = COMMON_METRICS | ENV_WORKER_METRICS | LEARNER_METRICS | EVALUATOR_METRICS | {"up"}
+HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds",
+              "causeway_policy_lag_versions", "causeway_policy_update_seconds"}
+KNOWN_METRICS = (COMMON_METRICS | ENV_WORKER_METRICS | FOLLOWER_METRICS | LEARNER_METRICS | EVALUATOR_METRICS
+                 | POLICY_LEARNER_METRICS | {"up"})
 
 # PromQL pieces that are not metric names: strings, label matchers, ranges, grouping clauses.
 _NOT_NAMES = re.compile(r'"(?:[^"\\]|\\.)*"|\{[^}]*\}|\[[^\]]*\]'
@@ -185,6 +194,29 @@ def _env_worker_registry() -> CollectorRegistry:
     common.counter("causeway_transition_batches_published", "TransitionBatches published").inc()
     common.counter("causeway_transition_bytes_published", "Bytes of TransitionBatches published").inc(1 << 16)
     common.histogram("causeway_publish_seconds", "Time to publish one batch", (0.001, 0.01, 0.1)).observe(0.002)
+    common.counter("causeway_skill_options_chosen", "Skills started", ("option", "policy")).labels(
+        option="grasp:unm", policy="learned").inc(3)
+    return common.registry
+
+
+def _follower_registry() -> CollectorRegistry:
+    from services.env_worker.service import _PolicyFollower
+
+    common = ServiceMetrics("env-worker", "0")
+    shell = SimpleNamespace(metrics=common, inbox=lambda *a, **k: None, subscribe=lambda *a: None)
+    follower = _PolicyFollower(shell, None, SimpleNamespace(run_id="r"))
+    follower.in_use.set(3)
+    return common.registry
+
+
+def _policy_learner_registry() -> CollectorRegistry:
+    from services.policy_learner.service import _Metrics
+
+    common = ServiceMetrics("policy-learner", "0")
+    metrics = _Metrics(SimpleNamespace(metrics=common))
+    metrics.version.set(4)
+    metrics.lag.observe(1)
+    metrics.update_seconds.observe(0.05)
     return common.registry
 
 
@@ -197,11 +229,14 @@ def test_known_metric_lists_match_the_services_registries() -> None:
     assert _families(_learner_registry()) == COMMON_METRICS | LEARNER_METRICS
     assert _families(_evaluator_registry()) == COMMON_METRICS | EVALUATOR_METRICS
     assert _families(_env_worker_registry()) == COMMON_METRICS | ENV_WORKER_METRICS
+    assert _families(_follower_registry()) == COMMON_METRICS | FOLLOWER_METRICS
+    assert _families(_policy_learner_registry()) == COMMON_METRICS | POLICY_LEARNER_METRICS
 
 
 @integration
-@pytest.mark.parametrize("registry", [_env_worker_registry, _learner_registry, _evaluator_registry],
-                         ids=["env-worker", "dynamics-learner", "graph-evaluator"])
+@pytest.mark.parametrize("registry", [_env_worker_registry, _learner_registry, _evaluator_registry,
+                                      _policy_learner_registry],
+                         ids=["env-worker", "dynamics-learner", "graph-evaluator", "policy-learner"])
 def test_promtool_accepts_the_metrics_exposition(registry) -> None:
     result = _promtool("check", "metrics", stdin=generate_latest(registry()).decode())
     report = result.stdout + result.stderr
