@@ -13,7 +13,12 @@ run directory it prints, for those columns (``x``, ``y``; the constant ``z`` car
   the model learned the contact and the data are too thin in it; a low contact-step CMI says the
   model has not learned it.
 
+With ``--policy run`` the skills are picked by the run's checkpointed policy over skills (a run with
+``--collector ppo``, e.g. PredDiff), sampled as its workers did, instead of uniformly: does the
+learned collection make the contacts more often?
+
     python -m benchmarks.manipulation_contacts [--steps 3000] [--seed 0] [--run-dir runs/manip-long]
+        [--policy uniform|run]
 """
 from __future__ import annotations
 
@@ -53,10 +58,11 @@ class Collected:
         return out
 
 
-def collect(steps: int, seed: int) -> Collected:
-    """``steps`` steps of the skill policy, with each step's contacts from its local graph."""
+def collect(steps: int, seed: int, chooser=None) -> Collected:
+    """``steps`` steps of the skill policy (Uniform, or skills picked by ``chooser(obs)``), with each
+    step's contacts from its local graph."""
     env = ManipulationEnv()
-    policy = SkillPolicy(env.action_space, seed)
+    policy = SkillPolicy(env.action_space, seed, chooser=chooser)
     obs, _ = env.reset(seed=seed)
     policy.reset()
     states, actions, nexts, graphs = [], [], [], []
@@ -98,16 +104,34 @@ def contact_cmi(model: CDLModel, data: Collected) -> dict[str, tuple[float, floa
     return out
 
 
+def run_chooser(run_dir: Path):
+    """The run's checkpointed policy over skills, sampling options as its env-workers did."""
+    from services.supervisor.config import RunConfig
+    from services.supervisor.supervisor import load_policy, service_configs
+
+    cfg = RunConfig(**json.loads((run_dir / "config.json").read_text()))
+    policy_cfg = service_configs(cfg, "")["policy-learner"]
+    chooser = load_policy(run_dir, policy_cfg, cfg, deterministic=False) if policy_cfg.skills else None
+    if chooser is None:
+        raise SystemExit(f"{run_dir} has no checkpointed policy over skills (run it with --collector ppo)")
+    return chooser
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--run-dir", type=Path, default=None, help="a manipulation run to read learned CMI from")
+    p.add_argument("--policy", choices=("uniform", "run"), default="uniform",
+                   help="pick skills uniformly, or with --run-dir's learned policy over skills")
     args = p.parse_args(argv)
+    if args.policy == "run" and args.run_dir is None:
+        p.error("--policy run needs --run-dir")
     torch.set_num_threads(1)
     started = time.perf_counter()
-    data = collect(args.steps, args.seed)
-    print(f"skill policy, {args.steps:,} steps, seed {args.seed} ({time.perf_counter() - started:.0f}s):")
+    chooser = run_chooser(args.run_dir) if args.policy == "run" else None
+    data = collect(args.steps, args.seed, chooser)
+    print(f"{args.policy} skill policy, {args.steps:,} steps, seed {args.seed} ({time.perf_counter() - started:.0f}s):")
     for name, fraction in data.fractions().items():
         label = name if name == "holding mov" else f"touching {name}"
         print(f"  {label:<14}: {100 * fraction:5.1f}% of steps")

@@ -386,8 +386,9 @@ def learner_caught_up(report: GraphReport | None, ratio: float, max_env_steps: i
     return report is not None and report.updates >= CATCH_UP_TOLERANCE * ratio * max_env_steps
 
 
-def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig):
-    """The policy-learner's last checkpointed policy as ``obs -> action`` (deterministic), or None."""
+def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig, deterministic: bool = True):
+    """The policy-learner's last checkpointed policy as ``obs -> action`` (the mode, or sampled), or None.
+    A policy over skills (``policy_cfg.skills``) returns the option to run next."""
     from envs import make_env
     from services.policy_learner.core import PolicyLearnerCore
 
@@ -397,7 +398,7 @@ def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig):
     spec = make_env(cfg.env, **env_kwargs(worker_config(cfg, "", 0))).unwrapped.env_spec()
     core = PolicyLearnerCore(policy_cfg, spec)
     core.restore(path)
-    return lambda obs: core.agent.act(obs, deterministic=True)
+    return lambda obs: core.agent.act(obs, deterministic=deterministic)
 
 
 def _git_revision() -> str:

@@ -50,3 +50,38 @@ def test_contact_cmi_is_the_cmi_over_the_touching_steps() -> None:
                           float(first_ten[np.ix_(ROWS, SOURCES["unm"])].max()))
     assert out["rand"][1] == 0.0  # no step touches rand
     assert data.fractions() == {"unm": 0.25, "rand": 0.0, "holding mov": 0.0}
+
+
+def _run_dir(tmp_path, collector: str, bias_option: int | None = None):
+    import dataclasses
+
+    from envs import make_env
+    from services.policy_learner.core import PolicyLearnerCore
+    from services.supervisor.config import RunConfig
+    from services.supervisor.supervisor import service_configs
+
+    cfg = RunConfig(env="manipulation", collector=collector, intrinsic="preddiff" if collector == "ppo" else "none")
+    tmp_path.mkdir(parents=True)
+    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    policy_cfg = service_configs(cfg, "")["policy-learner"]
+    if collector == "ppo":
+        core = PolicyLearnerCore(policy_cfg, make_env("manipulation").unwrapped.env_spec())
+        last = [m for m in core.agent.net.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+        with torch.no_grad():
+            last.bias[bias_option] = 30.0
+        core.checkpoint(tmp_path / "checkpoints" / "policy-learner-0.pt")
+    return tmp_path
+
+
+def test_the_runs_policy_over_skills_picks_the_skills(tmp_path) -> None:
+    import pytest
+
+    from benchmarks.manipulation_contacts import run_chooser
+    from envs.skills import OPTION_NAMES
+
+    unm = OPTION_NAMES.index("grasp:unm")
+    chooser = run_chooser(_run_dir(tmp_path / "ppo", "ppo", unm))
+    obs = np.random.default_rng(0).normal(size=(20, NUM_FACTORS)).astype(np.float32)
+    assert {int(chooser(o)) for o in obs} == {unm}
+    with pytest.raises(SystemExit, match="no checkpointed policy over skills"):
+        run_chooser(_run_dir(tmp_path / "random", "random"))
