@@ -82,9 +82,10 @@ class PolicyActor:
             return None
         from envs.skills import OPTION_NAMES, SkillPolicy
 
-        if options != OPTION_NAMES or self.action_space is None:
-            raise ValueError(f"policy over skills {list(options)}; this worker runs {list(OPTION_NAMES)}"
-                             if self.action_space is not None else "policy over skills for an env without them")
+        if self.action_space is None:
+            raise ValueError("a policy over skills for an env without skills")
+        if options != OPTION_NAMES:
+            raise ValueError(f"a policy over skills {list(options)}; this worker runs {list(OPTION_NAMES)}")
         if self.skills is not None:
             return self.skills
         return SkillPolicy(self.action_space, self.seed, chooser=self._choose)

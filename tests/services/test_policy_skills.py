@@ -2,6 +2,8 @@
 pays, workers run the skill the published policy picks and mark its decisions in the batches."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -91,6 +93,12 @@ def test_manipulation_worker_runs_the_skills_the_published_policy_picks() -> Non
         assert learner.ingest(batch).dropped == ""
     assert learner.stitcher.decisions >= 3 and learner.ready
     assert np.isfinite(learner.train_step()["policy_loss"])
+    other = learner.weights()
+    renamed = dataclasses.replace(other, version=other.version + 1,
+                                  config_json=other.config_json.replace('"grasp:unm"', '"grasp:lid"'))
+    with pytest.raises(ValueError, match="grasp:lid"):
+        worker.apply_weights(renamed)  # another env's skills: refused, the running policy stays
+    assert worker.actor.version == 1
 
 
 def test_a_worker_without_skills_rejects_a_policy_over_skills() -> None:
