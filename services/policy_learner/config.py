@@ -16,7 +16,8 @@ class PolicyLearnerConfig(ServiceConfig):
     algo: str = doc("ppo", "ppo or sac")
     skills: bool = doc(False, "PPO over the env's skill options (envs.skills.OPTIONS; manipulation) instead of raw "
                               "actions: one decision per skill, its return the sum of the skill's step rewards")
-    skill_rollout: int = doc(16, "skills: consecutive decisions of one worker per PPO column")
+    skill_rollout: int = doc(8, "skills: consecutive decisions of one worker per PPO column (and the PPO "
+                                "minibatch size, if smaller than minibatch_size)")
     seed: int = doc(0, "seed of the policy initialisation and sampling")
     scored: bool = doc(False, "learn from ScoredBatches (scored/*, with intrinsic rewards) instead of transitions/*")
     extrinsic_coef: float = doc(1.0, "weight of the environment reward")
@@ -50,8 +51,14 @@ class PolicyLearnerConfig(ServiceConfig):
             raise ValueError("max_policy_lag must be >= 0")
 
     def ppo(self) -> PPOConfig:
+        """PPO's settings. Over skills a rollout holds ``rollout_batches x skill_rollout`` decisions
+        (32 by default, ~1,000 motor steps) instead of ``rollout_batches x 256`` steps, so minibatches
+        shrink to ``skill_rollout`` to keep several gradient steps per update (measured: with 64
+        decisions per update in minibatches of 64 the policy stayed near uniform (entropy 1.94 of
+        ln 7 = 1.95) over the 71 updates of a 30-minute run)."""
+        minibatch = min(self.minibatch_size, self.skill_rollout) if self.skills else self.minibatch_size
         return PPOConfig(lr=self.lr, gamma=self.gamma, clip=self.clip, epochs=self.epochs,
-                         minibatch_size=self.minibatch_size, entropy_coef=self.entropy_coef,
+                         minibatch_size=minibatch, entropy_coef=self.entropy_coef,
                          hidden=(self.hidden, self.hidden))
 
     def sac(self) -> SACConfig:

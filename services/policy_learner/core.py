@@ -253,10 +253,13 @@ class PolicyLearnerCore:
         self.env_steps = int(saved["env_steps"])
         return True
 
+    def _decision_stats(self) -> dict[str, float]:
+        means = {f"return_{self.options[o]}": r for o, r in self.stitcher.mean_returns().items()}
+        return {"decisions": self.stitcher.decisions, "decisions_discarded": self.stitcher.discarded, **means}
+
     def progress(self) -> dict[str, float]:
         return {"policy_version": self.version, "updates": self.updates, "env_steps": self.env_steps,
                 "replay_size": len(self.replay), "pending_batches": len(self.pending),
-                **({"decisions": self.stitcher.decisions, "decisions_discarded": self.stitcher.discarded}
-                   if self.stitcher is not None else {}),
+                **(self._decision_stats() if self.stitcher is not None else {}),
                 **{f"dropped_{k}": v for k, v in self.dropped.items()},
                 **{f"lag_{k}": v for k, v in self.lags.items()}, **self.last_stats}

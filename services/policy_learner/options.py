@@ -59,6 +59,8 @@ class OptionStitcher:
         self.decisions = 0
         self.discarded = 0
         """Decisions whose return was lost in a gap."""
+        self.returns: dict[int, tuple[int, float]] = {}
+        """Per option: (finished decisions, sum of their returns): what the reward pays for each skill."""
 
     def add(self, batch: TransitionBatch, reward: np.ndarray, log_probs: LogProbs) -> list[list[Decision]]:
         """Stitch ``batch`` (its per-step ``reward`` already weighted) and return the runs it completes.
@@ -100,6 +102,12 @@ class OptionStitcher:
         stream.finished.append(decision)
         stream.running = None
         self.decisions += 1
+        count, total = self.returns.get(decision.option, (0, 0.0))
+        self.returns[decision.option] = (count + 1, total + decision.reward)
+
+    def mean_returns(self) -> dict[int, float]:
+        """Mean return of the finished decisions of each option so far."""
+        return {option: total / count for option, (count, total) in sorted(self.returns.items())}
 
     def _gap(self, stream: _Stream) -> None:
         if stream.running is not None:

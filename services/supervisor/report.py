@@ -186,7 +186,7 @@ def policy_summary(stats: dict[tuple[str, str], dict[str, float]],
     version each env-worker acted with, the policy-lag distribution of the batches the
     policy-learner received and its drops by reason (from the services' last stats beats); for a
     policy over skills also the skills started, summed over workers, by the Uniform warm-up policy
-    and by the learned one, and the decisions the learner stitched."""
+    and by the learned one, the decisions the learner stitched and their mean return per option."""
     learner = next((v for (service, _), v in stats.items() if service == "policy-learner"), {})
     options: dict[str, dict[str, int]] = {}
     for (service, _), values in sorted(stats.items()):
@@ -194,8 +194,10 @@ def policy_summary(stats: dict[tuple[str, str], dict[str, float]],
             if service == "env-worker" and key.startswith("options_"):
                 policy, option = key[len("options_"):].split("_", 1)
                 options.setdefault(policy, {})[option] = options.get(policy, {}).get(option, 0) + int(n)
+    returns = {key[len("return_"):]: round(v, 4) for key, v in learner.items() if key.startswith("return_")}
     extra = {"skill_options": options, "decisions": int(learner.get("decisions", 0)),
-             "decisions_discarded": int(learner.get("decisions_discarded", 0))} if options else {}
+             "decisions_discarded": int(learner.get("decisions_discarded", 0)),
+             "mean_return_by_option": returns} if options else {}
     lags = {key[4:]: int(v) for key, v in learner.items() if key.startswith("lag_")}
     order = sorted((k for k in lags if k.isdigit()), key=int) + [k for k in ("over", "future") if k in lags]
     return {

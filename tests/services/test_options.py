@@ -39,6 +39,7 @@ def test_decisions_sum_their_skill_rewards_across_batches() -> None:
     assert second.log_prob == pytest.approx(-3.5)
     assert not (first.done or second.done or first.truncated)
     assert stitcher.streams["w0"].running.option == 0 and stitcher.decisions == 2
+    assert stitcher.mean_returns() == {2: 6.0, 5: 14.0}
 
 
 def test_episode_end_closes_the_decision_and_bootstraps_only_truncations() -> None:

@@ -65,6 +65,11 @@ def test_ppo_over_skills_learns_to_pick_the_skill_that_pays() -> None:
     assert core.progress()["decisions"] == 8 * seq - 1  # the last skill is still running
 
 
+def test_minibatches_over_skills_are_one_column_of_decisions() -> None:
+    assert PolicyLearnerConfig(skills=True).ppo().minibatch_size == PolicyLearnerConfig().skill_rollout == 8
+    assert PolicyLearnerConfig().ppo().minibatch_size == 64  # motor actions: unchanged
+
+
 def test_sac_over_skills_is_refused() -> None:
     with pytest.raises(ValueError, match="PPO"):
         PolicyLearnerConfig(algo="sac", skills=True)

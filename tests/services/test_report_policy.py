@@ -23,12 +23,14 @@ def test_policy_summary_reads_the_last_beats() -> None:
 
 
 def test_policy_summary_sums_the_skills_workers_started() -> None:
-    stats = {("policy-learner", "0"): {"policy_version": 3.0, "decisions": 40.0, "decisions_discarded": 1.0},
+    stats = {("policy-learner", "0"): {"policy_version": 3.0, "decisions": 40.0, "decisions_discarded": 1.0,
+                                       "return_grasp:unm": 2.5, "return_reach": -0.25},
              ("env-worker", "0"): {"options_uniform_reach": 4.0, "options_learned_grasp:unm": 9.0},
              ("env-worker", "1"): {"options_learned_grasp:unm": 2.0, "options_learned_push:mov": 1.0}}
     out = policy_summary(stats, [])
     assert out["skill_options"] == {"learned": {"grasp:unm": 11, "push:mov": 1}, "uniform": {"reach": 4}}
     assert (out["decisions"], out["decisions_discarded"]) == (40, 1)
+    assert out["mean_return_by_option"] == {"grasp:unm": 2.5, "reach": -0.25}
 
 
 def test_plot_policy_writes_a_png(tmp_path: Path) -> None:
