@@ -232,7 +232,7 @@ class SkillPolicy:
         """An option of the Uniform policy: a uniform skill, then a uniform object for it."""
         name = self.skills[self.rng.integers(len(self.skills))]
         if name == "reach":
-            return 0
+            return OPTIONS.index(("reach", None))
         objects = self.grasp_objects if name == "grasp" else self.push_objects
         return OPTIONS.index((name, objects[self.rng.integers(len(objects))]))
 
