@@ -16,8 +16,9 @@ ROUTER_CONNECT = "tcp/router:7447"
 METRICS_PORT = "9100"
 
 
-def _compose_config(*args: str) -> subprocess.CompletedProcess[str]:
+def _compose_config(*args: str, **variables: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("CAUSEWAY_", "ZENOH_", "GRAFANA_"))}
+    env.update(variables)
     return subprocess.run([require_tool("docker-compose"), "-f", "compose.yaml", "config", *args], cwd=REPO,
                           env=env, capture_output=True, text=True, timeout=60)
 
@@ -87,6 +88,17 @@ def test_env_worker_scales_with_distinct_replicas(compose: dict[str, Any]) -> No
     env = worker["environment"]
     assert env["CAUSEWAY_WORKER_INDEX"] == "-1"
     assert (env["CAUSEWAY_ENV"], env["CAUSEWAY_GRAPH"], env["CAUSEWAY_NUM_OBJECTS"]) == ("chemical", "full", "10")
+
+
+@integration
+def test_manipulation_with_ppo_over_skills_is_two_variables_away(compose: dict[str, Any]) -> None:
+    assert compose["services"]["policy-learner"]["environment"]["CAUSEWAY_SKILLS"] == "false"
+    result = _compose_config(CAUSEWAY_ENV="manipulation", CAUSEWAY_SKILLS="true", CAUSEWAY_FOLLOW_POLICY="true")
+    assert result.returncode == 0, result.stderr
+    services = load_yaml(result.stdout)["services"]
+    assert services["env-worker"]["environment"]["CAUSEWAY_ENV"] == "manipulation"
+    assert services["env-worker"]["environment"]["CAUSEWAY_FOLLOW_POLICY"] == "true"
+    assert services["policy-learner"]["environment"]["CAUSEWAY_SKILLS"] == "true"
 
 
 @integration
