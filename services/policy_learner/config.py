@@ -24,6 +24,8 @@ class PolicyLearnerConfig(ServiceConfig):
     intrinsic_coef: float = doc(1.0, "weight of the intrinsic reward (scored batches only)")
     max_policy_lag: int = doc(4, "drop batches produced by a policy more than this many versions old")
     abstraction: bool = doc(True, "mask the policy input to the graph's abstraction (controllable + action-relevant)")
+    hide: str = doc("", "comma-separated factor-name prefixes the policy never sees, whatever the graph says "
+                        "(e.g. 'mk' hides the manipulation markers; '' none)")
     always_keep: str = doc(".goal_color", "factors whose name ends with this are never masked (provided task factors; '' none)")
     hidden: int = doc(64, "width of the two hidden layers of every policy/value network")
     lr: float = doc(3e-4, "Adam learning rate")

@@ -120,6 +120,12 @@ class PolicyLearnerCore:
         """Received batches by policy lag: ``"0"`` .. ``str(max_policy_lag)``, ``"over"`` (stale), ``"future"``."""
         self.graph_version = -1
         self.kept_factors: tuple[int, ...] | None = None
+        prefixes = tuple(p.strip() for p in cfg.hide.split(",") if p.strip())
+        self.hidden = frozenset(j for j, name in enumerate(self.layout.names) if name.startswith(prefixes)) \
+            if prefixes else frozenset()
+        if self.hidden:
+            self.agent.set_input_mask(abstraction_input_mask(
+                self.layout, [j for j in range(self.layout.num_factors) if j not in self.hidden]))
         self.last_stats: dict[str, float] = {}
 
     def ingest(self, message: TransitionBatch | ScoredBatch) -> Verdict:
@@ -227,6 +233,7 @@ class PolicyLearnerCore:
         kept = set(Abstraction(report.controllable, report.action_relevant, report.action_irrelevant).kept)
         suffix = self.cfg.always_keep
         kept |= {j for j, name in enumerate(self.layout.names) if suffix and name.endswith(suffix)}
+        kept -= self.hidden
         if tuple(sorted(kept)) == self.kept_factors:
             return False
         self.kept_factors = tuple(sorted(kept))

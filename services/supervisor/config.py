@@ -54,6 +54,8 @@ class RunConfig:
     task: str = doc("", "task on the environment: '' (none, reward-free) or match (env chemical-match)")
     abstraction: bool = doc(True, "mask the policy input to the learned abstraction (false: the dense baseline)")
     max_policy_lag: int = doc(4, "policy-learner: drop batches more than this many policy versions old")
+    policy_hide: str = doc("", "policy-learner: factor-name prefixes the policy never sees (e.g. 'mk': the "
+                               "manipulation markers)")
     intrinsic_coef: float = doc(1.0, "policy-learner: weight of the intrinsic reward")
     evaluate: bool = doc(True, "after a Chemical run: k-step prediction of the run's CDL model on ID and OOD "
                                "states and, with --task match, CEM and policy returns (summary.json, evaluation.png)")

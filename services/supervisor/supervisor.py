@@ -89,7 +89,7 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
     policy = PolicyLearnerConfig(**common, metrics_port=port(4), algo=cfg.collector if cfg.collector != "random" else "ppo",
                                  seed=cfg.seed, scored=cfg.intrinsic != "none", max_policy_lag=cfg.max_policy_lag,
                                  abstraction=cfg.abstraction, intrinsic_coef=cfg.intrinsic_coef,
-                                 skills=cfg.collector == "ppo" and cfg.env == "manipulation",
+                                 skills=cfg.collector == "ppo" and cfg.env == "manipulation", hide=cfg.policy_hide,
                                  checkpoint_every_s=cfg.checkpoint_every_s)
     intrinsic = IntrinsicRewardConfig(**common, metrics_port=port(5),
                                       reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff")

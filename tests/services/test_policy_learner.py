@@ -147,3 +147,16 @@ def test_checkpoint_resumes_the_version_sequence(tmp_path) -> None:
     assert again.restore(tmp_path / "p.pt") and (again.version, again.updates) == (2, 1)
     assert again.weights().version == 3
     assert again.ingest(w.collect()).dropped == "unknown_policy"  # v1's behaviour policy is gone
+
+
+def test_hidden_factors_stay_out_of_the_policy_input_whatever_the_graph_says() -> None:
+    spec = EnvSpec(env_id="toy", factor_names=("eef", "mk1", "mk2", "mov"), factor_kinds=("continuous",) * 4,
+                   factor_sizes=(2, 1, 1, 3), factor_objects=("eef", "mk1", "mk2", "mov"), factor_locs=(0.0,) * 4,
+                   factor_scales=(1.0,) * 4, action_kind="continuous", action_size=2, episode_length=10)
+    core = PolicyLearnerCore(PolicyLearnerConfig(hide="mk, zz", **SMALL), spec)
+    np.testing.assert_array_equal(core.weights().tensors["input_mask.mask"], [1, 1, 0, 0, 1, 1, 1])
+    assert core.apply_graph(_report(spec, (0, 1), (2, 3), 1))  # a graph that (wrongly) keeps the markers
+    assert core.kept_factors == (0, 3)
+    np.testing.assert_array_equal(core.weights().tensors["input_mask.mask"], [1, 1, 0, 0, 1, 1, 1])
+    plain = PolicyLearnerCore(PolicyLearnerConfig(**SMALL), spec)
+    assert plain.weights().tensors["input_mask.mask"].all()

@@ -30,8 +30,10 @@ def test_policy_run_starts_the_policy_services_and_workers_follow() -> None:
 
 
 def test_ppo_on_manipulation_acts_over_skills_and_sac_over_motor_actions() -> None:
-    ppo = resolve(RunConfig(router_port=7447, env="manipulation", collector="ppo", intrinsic="preddiff"))
+    ppo = resolve(RunConfig(router_port=7447, env="manipulation", collector="ppo", intrinsic="preddiff",
+                            policy_hide="mk"))
     assert service_configs(ppo, "x")["policy-learner"].skills  # the chapter's PPO over skills with PredDiff
+    assert service_configs(ppo, "x")["policy-learner"].hide == "mk"
     sac = resolve(RunConfig(router_port=7447, env="manipulation", collector="sac"))
     assert not service_configs(sac, "x")["policy-learner"].skills
 
