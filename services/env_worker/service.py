@@ -46,7 +46,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     spec_value = shell.transport.serve_latest(topics.env_spec(cfg.run_id))
     spec_value.set(encode(core.spec))
     follower = _PolicyFollower(shell, core, cfg) if cfg.follow_policy else None
-    key = topics.transitions(cfg.run_id, core.worker_id)
+    topic = topics.transitions(cfg.run_id, core.worker_id)
     started, last_episode = time.monotonic(), 0
     try:
         while not shell.stopping.is_set():
@@ -58,7 +58,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                 follower.update()
             batch = core.collect()
             t0 = time.perf_counter()
-            sent.inc(shell.publish(key, batch))
+            sent.inc(shell.publish(topic, batch))
             publish_seconds.observe(time.perf_counter() - t0)
             steps.inc(len(batch))
             batches.inc()
@@ -66,7 +66,8 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             last_episode = core.episode
             for (option, policy), n in option_counts(batch).items():
                 options.labels(option=option, policy=policy).inc(n)
-                chosen[f"options_{policy}_{option}"] = chosen.get(f"options_{policy}_{option}", 0) + n
+                stat = f"options_{policy}_{option}"
+                chosen[stat] = chosen.get(stat, 0) + n
             shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": batch.policy_version,
                         **chosen})
             if cfg.max_steps and core.env_steps >= cfg.max_steps:

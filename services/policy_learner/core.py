@@ -121,8 +121,7 @@ class PolicyLearnerCore:
         self.graph_version = -1
         self.kept_factors: tuple[int, ...] | None = None
         prefixes = tuple(p.strip() for p in cfg.hide.split(",") if p.strip())
-        self.hidden = frozenset(j for j, name in enumerate(self.layout.names) if name.startswith(prefixes)) \
-            if prefixes else frozenset()
+        self.hidden = frozenset(j for j, name in enumerate(self.layout.names) if name.startswith(prefixes))
         if self.hidden:
             self.agent.set_input_mask(abstraction_input_mask(
                 self.layout, [j for j in range(self.layout.num_factors) if j not in self.hidden]))

@@ -193,7 +193,8 @@ def policy_summary(stats: dict[tuple[str, str], dict[str, float]],
         for key, n in values.items():
             if service == "env-worker" and key.startswith("options_"):
                 policy, option = key[len("options_"):].split("_", 1)
-                options.setdefault(policy, {})[option] = options.get(policy, {}).get(option, 0) + int(n)
+                started = options.setdefault(policy, {})
+                started[option] = started.get(option, 0) + int(n)
     returns = {key[len("return_"):]: round(v, 4) for key, v in learner.items() if key.startswith("return_")}
     extra = {"skill_options": options, "decisions": int(learner.get("decisions", 0)),
              "decisions_discarded": int(learner.get("decisions_discarded", 0)),
