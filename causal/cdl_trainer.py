@@ -42,6 +42,9 @@ class CDLTrainer:
         causal = self.updates % self.cfg.causal_every == 0
         nll = self.model.training_nll(state, action, next_state, self.parents if causal else None, self.generator)
         loss = nll.mean(dim=2).sum()
+        lr = self.lr  # a function of the update count, so a resumed run continues the schedule
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
@@ -52,6 +55,11 @@ class CDLTrainer:
         if causal:
             stats["nll_causal"] = float(per_term[2])
         return stats
+
+    @property
+    def lr(self) -> float:
+        """The learning rate of the next update."""
+        return self.cfg.lr_at(self.updates)
 
     def state_dict(self) -> dict:
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),

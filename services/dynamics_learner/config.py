@@ -21,6 +21,9 @@ class DynamicsLearnerConfig(ServiceConfig):
     feature_dim: int = doc(_CDL.feature_dim, "feature size phi")
     predictor_hidden: int = doc(_CDL.predictor_hidden, "hidden width of each predictive head")
     lr: float = doc(_CDL.lr, "Adam learning rate")
+    lr_decay_updates: int = doc(_CDL.lr_decay_updates, "cosine decay of the learning rate from lr to lr_final "
+                                                       "over this many updates, constant after (0: no decay)")
+    lr_final: float = doc(_CDL.lr_final, "learning rate at the end of the decay")
     batch_size: int = doc(_CDL.batch_size, "transitions per update")
     causal_every: int = doc(_CDL.causal_every, "causal likelihood term every N updates (eq. 3.3)")
     cmi_threshold: float = doc(_CDL.cmi_threshold, "CMI edge threshold epsilon_G, nats")
@@ -32,5 +35,6 @@ class DynamicsLearnerConfig(ServiceConfig):
 
     def cdl(self) -> CDLConfig:
         return CDLConfig(feature_hidden=self.feature_hidden, feature_dim=self.feature_dim,
-                         predictor_hidden=self.predictor_hidden, lr=self.lr, batch_size=self.batch_size,
+                         predictor_hidden=self.predictor_hidden, lr=self.lr,
+                         lr_decay_updates=self.lr_decay_updates, lr_final=self.lr_final, batch_size=self.batch_size,
                          causal_every=self.causal_every, cmi_threshold=self.cmi_threshold)

@@ -28,6 +28,7 @@ class _Metrics:
         self.update_seconds = m.histogram("causeway_update_seconds", "Duration of one CDL update",
                                           (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0))
         self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
+        self.lr = m.gauge("causeway_dynamics_learning_rate", "Adam learning rate of the next CDL update (--lr-decay-updates)")
         self.ratio = m.gauge("causeway_dynamics_updates_per_env_step", "Updates per env step ingested so far")
         self.ratio_wait = m.counter("causeway_dynamics_ratio_wait_seconds",
                                     "Seconds the learner waited for env steps at --updates-per-env-step")
@@ -69,6 +70,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
             metrics.replay.set(core.replay.size)
             metrics.env_steps.set(core.env_steps)
             metrics.ratio.set(core.trainer.updates / max(core.env_steps, 1))
+            metrics.lr.set(core.trainer.lr)
             shell.beat(core.progress())
             if cfg.max_updates and core.trainer.updates >= cfg.max_updates:
                 break

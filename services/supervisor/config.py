@@ -38,6 +38,9 @@ class RunConfig:
     metrics_base_port: int = doc(9100, "Prometheus ports: learner +1, evaluator +2, worker i +10+i (0: none)")
     steps_per_second: float = doc(2000.0, "throttle per env-worker (0: unthrottled)")
     lr: float = doc(_CDL.lr, "CDL Adam learning rate")
+    lr_decay_updates: int = doc(_CDL.lr_decay_updates, "CDL: cosine decay of the learning rate from --lr to "
+                                                       "--lr-final over this many updates (0: constant)")
+    lr_final: float = doc(_CDL.lr_final, "CDL learning rate at the end of the decay")
     batch_size: int = doc(_CDL.batch_size, "CDL batch size")
     feature_dim: int = doc(_CDL.feature_dim, "CDL feature size (and feature-network hidden width)")
     predictor_hidden: int = doc(_CDL.predictor_hidden, "CDL head hidden width")

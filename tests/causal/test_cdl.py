@@ -127,6 +127,29 @@ def test_checkpoint_resume_is_exact() -> None:
         assert a.update(*b) == b_.update(*b)
 
 
+def test_cosine_learning_rate_schedule_is_followed_and_survives_resume() -> None:
+    cfg = CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8, lr=1e-2, lr_final=1e-4, lr_decay_updates=4)
+    assert [cfg.lr_at(u) for u in (0, 2, 4, 10)] == pytest.approx([1e-2, (1e-2 + 1e-4) / 2, 1e-4, 1e-4])
+    assert CDLConfig(lr=1e-2).lr_at(10**6) == 1e-2  # no decay unless asked
+    rng = np.random.default_rng(6)
+    batches = [toy_batch(rng, 16) for _ in range(6)]
+    a = CDLTrainer(LAYOUT, cfg, seed=1)
+    used = []
+    for b in batches[:3]:
+        used.append(a.lr)
+        a.update(*b)
+    assert used == pytest.approx([cfg.lr_at(u) for u in range(3)])
+    assert a.optimizer.param_groups[0]["lr"] == pytest.approx(cfg.lr_at(2))  # the rate Adam actually stepped with
+    resumed = CDLTrainer(LAYOUT, cfg, seed=2)
+    resumed.load_state_dict(a.state_dict())
+    assert resumed.lr == pytest.approx(cfg.lr_at(3))
+    for b in batches[3:]:
+        assert a.update(*b) == resumed.update(*b)
+    for bad in (dict(lr=0.0), dict(lr_final=-1.0), dict(lr_decay_updates=-1)):
+        with pytest.raises(ValueError):
+            CDLConfig(**bad)
+
+
 def test_max_and_drop_one_gradient_matches_autograd() -> None:
     from causal.cdl import _MaxAndDropOne
     torch.manual_seed(0)

@@ -66,6 +66,13 @@ def test_run_flag_reaches_the_learner() -> None:
     assert service_configs(RunConfig(), "tcp/x:1")["dynamics-learner"].updates_per_env_step == 0.0
 
 
+def test_learning_rate_schedule_flags_reach_the_model() -> None:
+    cfg = parse_config(RunConfig, ["--lr-decay-updates", "30000", "--lr-final", "2e-4"], {})
+    cdl = service_configs(cfg, "tcp/x:1")["dynamics-learner"].cdl()
+    assert (cdl.lr_decay_updates, cdl.lr_final) == (30000, 2e-4)
+    assert cdl.lr_at(30000) == pytest.approx(2e-4) and cdl.lr_at(0) == pytest.approx(cfg.lr)
+
+
 class _RecordingBus:
     def __init__(self) -> None:
         self.published: list[tuple[str, bytes]] = []
