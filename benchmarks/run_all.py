@@ -2,8 +2,9 @@
 
 The long ones have their own targets: time-to-F1 (up to 15 minutes per graph, ``make bench-f1``),
 the collection comparison (``make bench-collection``, ~1 h), the chapter-3 generalisation tables
-(``make bench-ch3``, ~33 min) and the manipulation contact diagnostics
-(``python -m benchmarks.manipulation_contacts --run-dir RUN``, needs a manipulation run).
+(``make bench-ch3``, ~33 min), the manipulation contact diagnostics
+(``python -m benchmarks.manipulation_contacts --run-dir RUN``, needs a manipulation run) and CDL
+training settings on one fixed manipulation dataset (``python -m benchmarks.manipulation_offline``, ~35 min).
 """
 from __future__ import annotations
 
