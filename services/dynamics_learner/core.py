@@ -17,6 +17,10 @@ from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save
 MODEL = "cdl"
 
 
+SCHEDULE_KEYS = ("lr_decay_updates", "lr_final")
+"""CDLConfig fields that a resumed learner may change."""
+
+
 class DynamicsLearnerCore:
     """Consumes training transitions, trains CDL (eq. 3.3), takes parents from graph reports."""
 
@@ -73,9 +77,16 @@ class DynamicsLearnerCore:
                        env_steps=self.env_steps)
 
     def fingerprint(self) -> str:
-        """What a checkpoint must match to be resumed: the environment and the model's architecture."""
+        """What a checkpoint must match to be resumed: the environment and the model's configuration.
+
+        The learning-rate schedule is left out (:data:`SCHEDULE_KEYS`): a run may be resumed with
+        another one (say, to decay a run trained at a constant rate), and checkpoints written before
+        the schedule existed still match."""
+        model = json.loads(model_config_json(self.layout, self.trainer.cfg))
+        for key in SCHEDULE_KEYS:
+            model["cdl"].pop(key)
         return json.dumps({"env": self.spec.env_id, "env_config": json.loads(self.spec.config_json),
-                           "model": json.loads(model_config_json(self.layout, self.trainer.cfg))}, sort_keys=True)
+                           "model": model}, sort_keys=True)
 
     def checkpoint(self, path: Path) -> None:
         save_checkpoint({"fingerprint": self.fingerprint(), "trainer": self.trainer.state_dict(),

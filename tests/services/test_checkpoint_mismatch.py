@@ -28,6 +28,14 @@ def test_learner_refuses_another_model_or_env(tmp_path) -> None:
         DynamicsLearnerCore(small, spec("collider")).restore(path)
 
 
+def test_learner_resumes_under_another_learning_rate_schedule(tmp_path) -> None:
+    path = tmp_path / "learner.pt"
+    small = dict(feature_hidden=8, feature_dim=8, predictor_hidden=8)
+    DynamicsLearnerCore(DynamicsLearnerConfig(**small), spec("chain")).checkpoint(path)
+    decayed = DynamicsLearnerCore(DynamicsLearnerConfig(**small, lr_decay_updates=500, lr_final=2e-4), spec("chain"))
+    assert decayed.restore(path) and decayed.trainer.lr == decayed.trainer.cfg.lr_at(0)
+
+
 def test_evaluator_refuses_another_env(tmp_path) -> None:
     path = tmp_path / "evaluator.pt"
     GraphEvaluatorCore(GraphEvaluatorConfig(), spec("chain")).checkpoint(path)
