@@ -9,6 +9,8 @@ from typing import Any
 
 import pytest
 
+from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.runtime.config import parse_config
 from tests.deploy import REPO, load_yaml, require_tool
 
 integration = pytest.mark.integration
@@ -99,6 +101,17 @@ def test_manipulation_with_ppo_over_skills_is_two_variables_away(compose: dict[s
     assert services["env-worker"]["environment"]["CAUSEWAY_ENV"] == "manipulation"
     assert services["env-worker"]["environment"]["CAUSEWAY_FOLLOW_POLICY"] == "true"
     assert services["policy-learner"]["environment"]["CAUSEWAY_SKILLS"] == "true"
+
+
+@integration
+def test_learning_rate_decay_is_one_variable_away(compose: dict[str, Any]) -> None:
+    assert compose["services"]["dynamics-learner"]["environment"]["CAUSEWAY_LR_DECAY_UPDATES"] == "0"
+    result = _compose_config(CAUSEWAY_LR_DECAY_UPDATES="30000")
+    assert result.returncode == 0, result.stderr
+    learner = load_yaml(result.stdout)["services"]["dynamics-learner"]["environment"]
+    assert learner["CAUSEWAY_LR_DECAY_UPDATES"] == "30000"
+    cfg = parse_config(DynamicsLearnerConfig, [], {k: str(v) for k, v in learner.items()})
+    assert cfg.cdl().lr_decay_updates == 30000
 
 
 @integration
