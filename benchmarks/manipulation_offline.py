@@ -30,7 +30,7 @@ import torch
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
-from causal.graph_metrics import score_graph
+from causal.graph_metrics import binary_scores, score_graph
 
 VARIANTS = ("constant", "cosine")
 SCORES = ("f1", "best_threshold_f1", "roc_auc", "accuracy", "precision", "identifiable_f1", "ema_f1")
@@ -110,7 +110,7 @@ def train_one(job: dict) -> dict:
         scores = score_graph(cmi, truth, cfg.cmi_threshold, constant)
         point = {"updates": update, "seconds": round(time.perf_counter() - started, 1), "lr": trainer.lr,
                  **{k: float(scores[k]) for k in SCORES if k in scores},
-                 "ema_f1": float(score_graph(ema, truth, cfg.cmi_threshold)["f1"])}
+                 "ema_f1": binary_scores(ema >= cfg.cmi_threshold, truth)["f1"]}
         curve.append(point)
         print(f"  {job['variant']:<8} seed {job['seed']} | {update:>7,} updates | F1 {point['f1']:.3f} "
               f"best {point['best_threshold_f1']:.3f} AUC {point['roc_auc']:.3f} acc {point['accuracy']:.3f} "

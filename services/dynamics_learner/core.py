@@ -108,4 +108,5 @@ class DynamicsLearnerCore:
 
     def progress(self) -> dict[str, float]:
         return {"updates": self.trainer.updates, "env_steps": self.env_steps, "replay_size": self.replay.size,
-                "weights_version": self.version, "resumed_at_update": self.resumed_at_update, "lr": self.trainer.lr, **self.last_stats}
+                "weights_version": self.version, "resumed_at_update": self.resumed_at_update,
+                "lr": self.trainer.lr, **self.last_stats}
