@@ -77,7 +77,8 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
     port = (lambda offset: cfg.metrics_base_port + offset if cfg.metrics_base_port else 0)
     learner = DynamicsLearnerConfig(**common, metrics_port=port(1), seed=cfg.seed, lr=cfg.lr,
                                     lr_decay_updates=cfg.lr_decay_updates, lr_final=cfg.lr_final,
-                                    batch_size=cfg.batch_size, feature_hidden=cfg.feature_dim,
+                                    batch_size=cfg.batch_size, replay_capacity=cfg.replay_capacity,
+                                    feature_hidden=cfg.feature_dim,
                                     feature_dim=cfg.feature_dim, predictor_hidden=cfg.predictor_hidden,
                                     cmi_threshold=cfg.cmi_threshold, publish_every_s=cfg.publish_every_s,
                                     checkpoint_every_s=cfg.checkpoint_every_s,

@@ -115,6 +115,16 @@ def test_learning_rate_decay_is_one_variable_away(compose: dict[str, Any]) -> No
 
 
 @integration
+def test_replay_capacity_is_one_variable_away(compose: dict[str, Any]) -> None:
+    default = compose["services"]["dynamics-learner"]["environment"]["CAUSEWAY_REPLAY_CAPACITY"]
+    assert int(default) == DynamicsLearnerConfig().replay_capacity
+    result = _compose_config(CAUSEWAY_REPLAY_CAPACITY="1000000")
+    assert result.returncode == 0, result.stderr
+    learner = load_yaml(result.stdout)["services"]["dynamics-learner"]["environment"]
+    assert parse_config(DynamicsLearnerConfig, [], {k: str(v) for k, v in learner.items()}).replay_capacity == 1_000_000
+
+
+@integration
 def test_router_is_upstream_zenoh_1x_with_the_deploy_config(compose: dict[str, Any]) -> None:
     router = compose["services"]["router"]
     image, tag = router["image"].rsplit(":", 1)

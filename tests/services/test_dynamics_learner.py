@@ -73,6 +73,13 @@ def test_learning_rate_schedule_flags_reach_the_model() -> None:
     assert cdl.lr_at(30000) == pytest.approx(2e-4) and cdl.lr_at(0) == pytest.approx(cfg.lr)
 
 
+def test_replay_capacity_flag_reaches_the_learner() -> None:
+    cfg = parse_config(RunConfig, ["--replay-capacity", "1000000"], {})
+    learner = service_configs(cfg, "tcp/x:1")["dynamics-learner"]
+    assert learner.replay_capacity == 1_000_000
+    assert service_configs(RunConfig(), "tcp/x:1")["dynamics-learner"].replay_capacity == 200_000
+
+
 class _RecordingBus:
     def __init__(self) -> None:
         self.published: list[tuple[str, bytes]] = []
