@@ -4,7 +4,9 @@ The long ones have their own targets: time-to-F1 (up to 15 minutes per graph, ``
 the collection comparison (``make bench-collection``, ~1 h), the chapter-3 generalisation tables
 (``make bench-ch3``, ~33 min), the manipulation contact diagnostics
 (``python -m benchmarks.manipulation_contacts --run-dir RUN``, needs a manipulation run) and CDL
-training settings on one fixed manipulation dataset (``python -m benchmarks.manipulation_offline``, ~35 min).
+training settings on one fixed manipulation dataset (``python -m benchmarks.manipulation_offline``, ~46 min
+with its shards cached, ~12 more to collect them). ``python -m benchmarks.rescore_runs RUN...`` scores
+finished runs again from their ``summary.json`` (Table 3.1's scoring beside ours).
 """
 from __future__ import annotations
 

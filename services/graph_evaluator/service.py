@@ -16,7 +16,8 @@ from services.runtime.shell import ServiceShell, service_main
 SERVICE = "graph-evaluator"
 KIND = "cdl"
 SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold_f1",
-          "identifiable_accuracy", "identifiable_f1", "identifiable_best_threshold_f1")
+          "identifiable_accuracy", "identifiable_f1", "identifiable_best_threshold_f1",
+          "with_self_accuracy", "with_self_f1", "with_self_best_threshold_f1")
 log = logging.getLogger(SERVICE)
 
 

@@ -20,6 +20,9 @@ SUMMARY_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_thre
 IDENTIFIABLE_SCORES = tuple(f"identifiable_{k}" for k in SUMMARY_SCORES) + ("unidentifiable_true_edges",)
 """The same scores without the columns of factors that are constant by construction (see
 :func:`causal.graph_metrics.score_graph`); equal to the others in environments without such factors."""
+WITH_SELF_SCORES = tuple(f"with_self_{k}" for k in SUMMARY_SCORES)
+"""The same scores over every entry, self-edges included and kept: Table 3.1's scoring (see
+:mod:`causal.graph_metrics`)."""
 
 
 def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict[str, float]]) -> dict[str, Any]:
@@ -29,7 +32,7 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
         out["graph_report"] = None
         return out
     abstraction = Abstraction(report.controllable, report.action_relevant, report.action_irrelevant)
-    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES if k in report.metrics})
+    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES + WITH_SELF_SCORES if k in report.metrics})
     out.update({
         "threshold": report.threshold,
         "weights_version": report.weights_version,
@@ -41,7 +44,8 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
         "cmi": np.round(report.cmi.astype(float), 5).tolist(),
         "abstraction": abstraction.named(report.factor_names),
         "scoring": "off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored); "
-                   "identifiable_*: also without the columns of factors constant by construction",
+                   "identifiable_*: also without the columns of factors constant by construction; "
+                   "with_self_*: every entry, self-edges included and kept (Table 3.1's scoring)",
         "history": history,
     })
     objects = object_scores(report.adjacency, report.true_graph, report.factor_names)
@@ -167,6 +171,7 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
     keys = ["f1", "best_threshold_f1", "accuracy", "roc_auc"]
     if history[0].get("unidentifiable_true_edges", 0) > 0:  # else identical to the full scores
         keys += ["identifiable_f1", "identifiable_best_threshold_f1"]
+    keys += ["with_self_best_threshold_f1"]  # the figure Table 3.1 reports
     for key in keys:
         if key in history[0]:
             ax.plot(steps, [h[key] for h in history], label=key)

@@ -49,7 +49,8 @@ def test_identifiable_scores_equal_the_full_ones_when_nothing_is_constant() -> N
     both = score_graph(scores, TRUTH, threshold=0.15, constant_factors=())
     assert not any(k.startswith("identifiable_") for k in paper)  # the paper's score alone, unchanged
     assert {k: v for k, v in both.items() if k in paper} == paper
-    assert {k: both[f"identifiable_{k}"] for k in paper} == paper
+    plain = {k: v for k, v in paper.items() if not k.startswith("with_self_")}
+    assert {k: both[f"identifiable_{k}"] for k in plain} == plain
     assert both["unidentifiable_true_edges"] == 0.0
     assert np.array_equal(identifiable_entries(TRUTH.shape, ()), scored_entries(TRUTH.shape))
 
@@ -67,3 +68,36 @@ def test_identifiable_scores_leave_out_the_columns_of_constant_factors_by_hand()
     assert s["unidentifiable_true_edges"] == 1.0
     # positives 0.8, 0.6 above all five negatives; the missed 1 -> 0 (CMI 0) only counts in the full AUC
     assert s["identifiable_roc_auc"] == 1.0 and s["roc_auc"] < 1.0
+
+
+def test_with_self_scores_count_every_entry_with_the_self_edges_kept_by_hand() -> None:
+    # Off the diagonal at 0.1: 0<-a (tp), 2<-0 (fp); missed 0<-1, 1<-a. Self-edges: 3 tp whatever the CMI.
+    # Every entry: tp 4, fp 1, fn 2, tn 5 of 12.
+    cmi = np.array([[-1.0, 0.0, 0.0, 0.8], [0.0, 0.0, 0.0, 0.01], [0.5, 0.0, -0.3, 0.0]])
+    s = score_graph(cmi, TRUTH, threshold=0.1)
+    assert s["with_self_accuracy"] == 9 / 12 and s["with_self_precision"] == 4 / 5
+    assert s["with_self_recall"] == 4 / 6 and abs(s["with_self_f1"] - 8 / 11) < 1e-12
+    # The plain scores of the same graph: tp 1, fp 1, fn 2, tn 5 of 9.
+    assert s["accuracy"] == 6 / 9 and s["recall"] == 1 / 3
+    # The sweep spans the finite (off-diagonal) values 0..0.8; at (0, 0.01] it keeps 1<-a too: tp 5, fp 1, fn 1.
+    assert 0 < s["with_self_best_threshold"] <= 0.01 and abs(s["with_self_best_threshold_f1"] - 5 / 6) < 1e-12
+    # Positives 0.8, 0.01, 0 (0<-1) and three self-edges at +inf against negatives 0 x 5 and 0.5:
+    # 6 + 5 + 2.5 (ties) + 18 = 31.5 of 36 pairs.
+    assert abs(s["with_self_roc_auc"] - 31.5 / 36) < 1e-12
+
+
+def test_table_3_1_implies_self_edges_are_scored_on_manipulation() -> None:
+    """The chapter's manipulation recall, precision and accuracy fit our truth only with self-edges counted."""
+    from envs.manipulation_truth import global_graph
+
+    truth = global_graph().astype(bool)
+    recall, precision, accuracy = 0.612, 0.980, 0.902  # Table 3.1, CDL, manipulation
+
+    def implied_accuracy(mask: np.ndarray) -> float:
+        positives = truth[mask].sum()
+        errors = positives * (1 - recall) + positives * recall * (1 / precision - 1)
+        return 1 - errors / mask.sum()
+
+    assert (truth.sum(), truth[scored_entries(truth.shape)].sum()) == (135, 112)
+    assert abs(implied_accuracy(np.ones(truth.shape, bool)) - accuracy) < 0.001
+    assert abs(implied_accuracy(scored_entries(truth.shape)) - accuracy) > 0.01

@@ -49,6 +49,8 @@ EVALUATOR_METRICS = {
     "causeway_graph_reports_total", "causeway_heldout_transitions", "causeway_graph_weights_version",
     "causeway_graph_env_steps", "causeway_graph_eval_seconds", "causeway_graph_identifiable_accuracy_ratio",
     "causeway_graph_identifiable_f1_ratio", "causeway_graph_identifiable_best_threshold_f1_ratio",
+    "causeway_graph_with_self_accuracy_ratio", "causeway_graph_with_self_f1_ratio",
+    "causeway_graph_with_self_best_threshold_f1_ratio",
 }
 HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds",
               "causeway_policy_lag_versions", "causeway_policy_update_seconds"}

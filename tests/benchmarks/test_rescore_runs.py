@@ -1,0 +1,42 @@
+"""benchmarks.rescore_runs: a finished run's summary scored again, with Table 3.1's scoring beside it."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.rescore_runs import main, rescore
+from envs.manipulation_truth import global_graph
+
+
+def _run(tmp_path: Path, name: str, cmi: np.ndarray | None) -> Path:
+    run = tmp_path / name
+    run.mkdir()
+    truth = global_graph()
+    summary = {"env": "manipulation", "graph_env_steps": 1234, "threshold": 0.02, "true_graph": truth.tolist(),
+               "cmi": None if cmi is None else np.round(cmi, 5).tolist()}
+    (run / "summary.json").write_text(json.dumps(summary))
+    return run
+
+
+def test_a_run_that_finds_every_off_diagonal_edge_but_one_row(tmp_path: Path) -> None:
+    truth = global_graph().astype(bool)
+    cmi = np.where(truth, 0.3, 0.001)
+    cmi[0] = 0.001  # eef.x's 14 off-diagonal true edges missed (its self-edge is kept whatever its CMI)
+    row = rescore(_run(tmp_path, "r", cmi))
+    assert row["env_steps"] == 1234 and row["precision"] == 1.0
+    assert row["recall"] == (112 - 14) / 112 and row["with_self_recall"] == (135 - 14) / 135
+    assert row["with_self_accuracy"] == (552 - 14) / 552 and row["with_self_best_threshold_f1"] > row["best_threshold_f1"]
+
+
+def test_cli_prints_the_table_with_the_chapter_row_and_skips_unscorable_runs(tmp_path: Path, capsys) -> None:
+    good = _run(tmp_path, "good", np.where(global_graph() > 0, 0.3, 0.0))
+    bad = _run(tmp_path, "bad", None)
+    out = tmp_path / "rescore.json"
+    assert main([str(good), str(bad), str(tmp_path / "missing"), "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "| `good` | 1,234 | 1.000 | 1.000 |" in captured.out
+    assert "| chapter, Table 3.1 (manipulation) | 1.8M | 0.754 | 0.902 |" in captured.out
+    assert "bad/summary.json: no graph" in captured.err and "missing/summary.json: cannot read" in captured.err
+    assert [r["run"] for r in json.loads(out.read_text())] == ["good"]
