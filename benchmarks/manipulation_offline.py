@@ -33,7 +33,8 @@ from causal.factored import FactorLayout
 from causal.graph_metrics import binary_scores, score_graph
 
 VARIANTS = ("constant", "cosine")
-SCORES = ("f1", "best_threshold_f1", "roc_auc", "accuracy", "precision", "identifiable_f1", "ema_f1")
+SCORES = ("f1", "best_threshold_f1", "roc_auc", "accuracy", "precision", "identifiable_f1", "ema_f1",
+          "with_self_best_threshold_f1")
 ARRAYS = ("state", "action", "next_state")
 CMI_EMA = 0.5
 """Weight of the newest CMI estimate in the smoothed one (the graph-evaluator's cmi_ema)."""
@@ -134,7 +135,7 @@ def summarise(runs: list[dict], tail: int) -> list[dict]:
 
 
 def markdown(rows: list[dict], tail: int) -> str:
-    keys = ("f1", "best_threshold_f1", "roc_auc", "accuracy", "identifiable_f1")
+    keys = ("f1", "best_threshold_f1", "roc_auc", "accuracy", "identifiable_f1", "with_self_best_threshold_f1")
     head = "| variant | seeds | updates | " + " | ".join(keys) + " |"
     lines = [f"Means of the last {tail} evaluations per seed (mean ± sd over seeds):", head,
              "|" + "---|" * (3 + len(keys))]

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from benchmarks.manipulation_offline import main, parse_shard, shard_path, summarise
+from benchmarks.manipulation_offline import SCORES, main, parse_shard, shard_path, summarise
 
 
 def test_shard_specs_are_checked() -> None:
@@ -18,8 +18,7 @@ def test_shard_specs_are_checked() -> None:
 
 def test_summary_averages_each_seeds_tail_then_the_seeds() -> None:
     def run(seed: int, f1s: list[float]) -> dict:
-        points = [{"updates": 10 * (i + 1), **{k: f for k in ("f1", "best_threshold_f1", "roc_auc", "accuracy",
-                                                               "precision", "identifiable_f1", "ema_f1")}}
+        points = [{"updates": 10 * (i + 1), **{k: f for k in SCORES}}
                   for i, f in enumerate(f1s)]
         return {"variant": "constant", "seed": seed, "curve": points}
 
