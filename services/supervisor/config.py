@@ -43,8 +43,9 @@ class RunConfig:
                                                        "--lr-final over this many updates (0: constant)")
     lr_final: float = doc(_CDL.lr_final, "CDL learning rate at the end of the decay")
     batch_size: int = doc(_CDL.batch_size, "CDL batch size")
-    replay_capacity: int = doc(DynamicsLearnerConfig.replay_capacity, "dynamics-learner: transitions kept in its replay (oldest dropped); "
-                                        "raise it for runs longer than this many env steps")
+    replay_capacity: int = doc(DynamicsLearnerConfig.replay_capacity,
+                               "dynamics-learner: transitions kept in its replay (oldest dropped); raise it for "
+                               "runs longer than this many env steps")
     feature_dim: int = doc(_CDL.feature_dim, "CDL feature size (and feature-network hidden width)")
     predictor_hidden: int = doc(_CDL.predictor_hidden, "CDL head hidden width")
     cmi_threshold: float = doc(_CDL.cmi_threshold, "CMI edge threshold, nats")

@@ -32,7 +32,8 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
         out["graph_report"] = None
         return out
     abstraction = Abstraction(report.controllable, report.action_relevant, report.action_irrelevant)
-    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES + WITH_SELF_SCORES if k in report.metrics})
+    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES + WITH_SELF_SCORES
+                if k in report.metrics})
     out.update({
         "threshold": report.threshold,
         "weights_version": report.weights_version,
