@@ -15,7 +15,8 @@ from causal.graph_metrics import scored_entries
 from proto.messages import GraphReport, ServiceStats
 
 ACTION_COLUMN = "action"
-CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1", "identifiable_f1")
+CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1", "identifiable_f1",
+                 "with_self_best_threshold_f1", "with_self_accuracy")
 ABSTRACTION_CLASSES = (("controllable", "Controllable"), ("action_relevant", "Action-relevant"),
                        ("action_irrelevant", "Action-irrelevant"))
 OUTCOMES = ("tp", "fp", "fn", "tn")
@@ -36,6 +37,10 @@ class CurvePoint:
     best_threshold_f1: float | None
     identifiable_f1: float | None = None
     """F1 without the columns of constant factors (manipulation); equal to ``f1`` elsewhere."""
+    with_self_best_threshold_f1: float | None = None
+    """Best-threshold F1 over every entry, self-edges counted found: Table 3.1's scoring (README, Scoring)."""
+    with_self_accuracy: float | None = None
+    """Accuracy at the working threshold, scored the same way."""
 
     @classmethod
     def of(cls, report: GraphReport, time: float) -> CurvePoint:

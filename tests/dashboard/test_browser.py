@@ -113,6 +113,12 @@ def test_live_page_renders_updates_without_reload_and_explains_cells(stack) -> N
         for heatmap in ("learned", "truth", "compare"):
             assert browser.evaluate(f"document.querySelectorAll('#heatmap-{heatmap} rect.cell').length") == 9 * 10
         browser.evaluate("window.loadedOnce = true")
+        shown = make_report(3, version=6, errors=3, seed=6).metrics  # the report on the page now
+        assert shown["with_self_best_threshold_f1"] != shown["best_threshold_f1"]  # the two scorings differ
+        assert text(browser, "#with-self-f1") == f"{shown['with_self_best_threshold_f1']:.3f}"
+        assert text(browser, "#with-self-note") == f"accuracy {shown['with_self_accuracy']:.3f}"
+        assert "best F1, Table 3.1 scoring" in text(browser, "#chart-legend")
+        assert browser.evaluate("document.querySelectorAll('#chart path.series-with_self_best_threshold_f1').length") == 1
 
         second = make_report(3, version=7, errors=0, seed=7)
         assert f"{second.metrics['f1']:.3f}" != text(browser, "#f1")
@@ -148,5 +154,8 @@ def test_live_page_renders_updates_without_reload_and_explains_cells(stack) -> N
         shown = float(re.search(r"CMI\s+([-0-9.e]+) nats", tip).group(1))
         assert shown == pytest.approx(float(second.cmi[3, 0]), rel=5e-3)
         browser.screenshot(SCREENSHOT)
+        older = {k: v for k, v in third.metrics.items() if not k.startswith("with_self_")}  # an older evaluator
+        latest.set(encode(replace(make_report(3, version=9, errors=0, seed=9), metrics=older)))
+        browser.wait_for("document.getElementById('kpi-with-self').hidden", 10, "the Table 3.1 score hidden")
         assert browser.exceptions == []
     assert SCREENSHOT.stat().st_size > 30_000

@@ -72,7 +72,8 @@ def test_history_is_bounded_and_thinned_so_it_still_spans_the_run() -> None:
     steps = [p["env_steps"] for p in history]
     assert steps[0] == 100 and steps[-1] == 2500 and steps == sorted(steps)
     assert set(history[0]) == {"time", "env_steps", "updates", "f1", "accuracy", "precision", "recall", "roc_auc",
-                               "best_threshold_f1", "identifiable_f1"}
+                               "best_threshold_f1", "identifiable_f1", "with_self_best_threshold_f1",
+                               "with_self_accuracy"}
     assert history[0]["precision"] is None and history[0]["f1"] == 0.5
 
 

@@ -36,6 +36,10 @@ function renderKpis(graph, previous) {
   const identifiable = m.identifiable_f1 != null && m.identifiable_f1 !== m.f1;
   $('kpi-identifiable').hidden = !identifiable;
   setText('identifiable-f1', identifiable ? fmt.ratio(m.identifiable_f1) : '–');
+  const withSelf = m.with_self_best_threshold_f1 != null;
+  $('kpi-with-self').hidden = !withSelf;
+  setText('with-self-f1', withSelf ? fmt.ratio(m.with_self_best_threshold_f1) : '–');
+  setText('with-self-note', withSelf ? `accuracy ${fmt.ratio(m.with_self_accuracy)}` : '');
   setText('env-steps', fmt.int(graph.env_steps));
   setText('updates', fmt.int(graph.updates));
   setText('weights-version', String(graph.weights_version));

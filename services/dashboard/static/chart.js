@@ -7,14 +7,19 @@ const SERIES = [
   { key: 'best_threshold_f1', label: 'best-threshold F1', dashed: true },
   { key: 'accuracy', label: 'accuracy' },
   { key: 'roc_auc', label: 'ROC AUC' },
-  { key: 'identifiable_f1', label: 'identifiable F1', dashed: true, optional: true },
+  { key: 'identifiable_f1', label: 'identifiable F1', dashed: true, optional: 'differs' },
+  { key: 'with_self_best_threshold_f1', label: 'best F1, Table 3.1 scoring', dotted: true, optional: 'present' },
 ];
 
-// Optional series are drawn only where they tell something new (identifiable F1 differs from F1
-// only on environments with constant factors, i.e. manipulation).
+// Optional series are drawn only where they tell something new: identifiable F1 where it differs
+// from F1 (environments with constant factors, i.e. manipulation); the Table 3.1-scored F1 (every
+// entry, self-edges counted found) where the evaluator reports it (older runs do not).
 function activeSeries(points) {
-  return SERIES.filter(({ key, optional }) => !optional || points.some((p) => p[key] != null && p[key] !== p.f1));
+  const shows = { differs: (p, key) => p[key] != null && p[key] !== p.f1, present: (p, key) => p[key] != null };
+  return SERIES.filter(({ key, optional }) => !optional || points.some((p) => shows[optional](p, key)));
 }
+
+const lineClass = ({ key, dashed, dotted }) => `series-${key}${dashed ? ' dashed' : ''}${dotted ? ' dotted' : ''}`;
 
 function niceTicks(lo, hi, count) {
   const raw = (hi - lo) / Math.max(count, 1);
@@ -50,7 +55,8 @@ export function renderChart(chart, points) {
     return;
   }
   const series = activeSeries(points);
-  series.forEach(({ key, dashed }) => {
+  series.forEach((line) => {
+    const { key } = line;
     let d = '';
     let pen = 'M';
     let last = null;
@@ -61,7 +67,7 @@ export function renderChart(chart, points) {
       last = p;
     });
     if (!last) return;
-    svg('path', { class: `series series-${key}${dashed ? ' dashed' : ''}`, d }, chart);
+    svg('path', { class: `series ${lineClass(line)}`, d }, chart);
     svg('circle', { class: `end-dot series-${key}`, cx: x(last.env_steps), cy: y(last[key]), r: 3.5 }, chart);
   });
   const crosshair = svg('line', { class: 'crosshair', y1: m.t, y2: height - m.b, visibility: 'hidden' }, chart);
@@ -83,7 +89,7 @@ export function renderChart(chart, points) {
 }
 
 export function renderChartLegend(container, points = []) {
-  container.replaceChildren(...activeSeries(points).map(({ key, label, dashed }) => html('span', { className: 'key' }, [
-    html('span', { className: `swatch-line series-${key}${dashed ? ' dashed' : ''}` }), document.createTextNode(label),
+  container.replaceChildren(...activeSeries(points).map((line) => html('span', { className: 'key' }, [
+    html('span', { className: `swatch-line ${lineClass(line)}` }), document.createTextNode(line.label),
   ])));
 }
