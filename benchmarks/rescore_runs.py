@@ -8,6 +8,10 @@ threshold of the linear sweep, with the chapter's figures as the last row where 
 writes the scores as JSON.
 
     python -m benchmarks.rescore_runs runs/manip-1w runs/manip-decay [--out benchmark-results/rescore.json]
+    python -m benchmarks.rescore_runs runs/manip-decay-s1 runs/manip-decay-s2 runs/manip-decay-s3 --mean
+
+``--mean`` (for seeds of one configuration) adds a row of mean ± sample standard deviation per
+environment, the form of the chapter's 3-seed figures.
 
 The CMI in ``summary.json`` is rounded to 5 decimals; scores computed from it can differ from the
 run's own in the last digit where an entry sits on a threshold.
@@ -49,12 +53,26 @@ def rescore(run_dir: Path) -> dict[str, float | str | int]:
             **scores}
 
 
-def table(rows: list[dict]) -> str:
+def mean_sd(rows: list[dict]) -> dict[str, tuple[float, float]]:
+    """Per scored column: (mean, sample standard deviation) over ``rows`` (sd 0 for one row)."""
+    out = {}
+    for key, _ in COLUMNS + (("env_steps", ""),):
+        values = np.array([row[key] for row in rows], np.float64)
+        out[key] = (float(values.mean()), float(values.std(ddof=1)) if len(values) > 1 else 0.0)
+    return out
+
+
+def table(rows: list[dict], mean: bool = False) -> str:
     lines = ["| run | env steps | " + " | ".join(title for _, title in COLUMNS) + " |",
              "|---|---|" + "---|" * len(COLUMNS)]
     for row in rows:
         lines.append(f"| `{row['run']}` | {row['env_steps']:,} | "
                      + " | ".join(f"{row[key]:.3f}" for key, _ in COLUMNS) + " |")
+    for env in sorted({row["env"] for row in rows}) if mean else ():
+        group = [row for row in rows if row["env"] == env]
+        stats = mean_sd(group)
+        lines.append(f"| mean ± sd, {len(group)} runs ({env}) | {stats['env_steps'][0]:,.0f} | "
+                     + " | ".join(f"{stats[key][0]:.3f} ± {stats[key][1]:.3f}" for key, _ in COLUMNS) + " |")
     for env in sorted({row["env"] for row in rows} & CHAPTER.keys()):
         c = CHAPTER[env]
         lines.append(f"| chapter, Table 3.1 ({env}) | 1.8M | {c['f1']:.3f} | {c['accuracy']:.3f} | {c['recall']:.3f} "
@@ -66,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=Path("benchmark-results/rescore.json"))
+    parser.add_argument("--mean", action="store_true", help="add mean ± sd rows (seeds of one configuration)")
     args = parser.parse_args(argv)
     rows, failed = [], 0
     for run_dir in args.run_dirs:
@@ -75,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"skipped: {exc}", file=sys.stderr)
             failed += 1
     if rows:
-        print(table(rows))
+        print(table(rows, mean=args.mean))
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(rows, indent=1))
         print(f"\nwrote {args.out}")

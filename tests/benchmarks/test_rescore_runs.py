@@ -40,3 +40,17 @@ def test_cli_prints_the_table_with_the_chapter_row_and_skips_unscorable_runs(tmp
     assert "| chapter, Table 3.1 (manipulation) | 1.8M | 0.754 | 0.902 |" in captured.out
     assert "bad/summary.json: no graph" in captured.err and "missing/summary.json: cannot read" in captured.err
     assert [r["run"] for r in json.loads(out.read_text())] == ["good"]
+
+
+def test_mean_row_gives_mean_and_sample_sd_over_seeds(tmp_path: Path, capsys) -> None:
+    truth = global_graph().astype(bool)
+    runs = []
+    for k, missed_rows in enumerate((0, 1, 2)):  # eef.x's, then also eef.y's, 14 off-diagonal edges missed
+        cmi = np.where(truth, 0.3, 0.001)
+        cmi[:missed_rows] = 0.001
+        runs.append(_run(tmp_path, f"s{k}", cmi))
+    assert main([*map(str, runs), "--mean", "--out", str(tmp_path / "r.json")]) == 0
+    accuracies = [(552 - 14 * m) / 552 for m in (0, 1, 2)]  # each missed row costs its 14 true edges
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| mean ± sd, 3 runs"))
+    assert f"| {np.mean(accuracies):.3f} ± {np.std(accuracies, ddof=1):.3f} |" in line
+    assert line.startswith("| mean ± sd, 3 runs (manipulation) | 1,234 | ")
