@@ -37,7 +37,7 @@ def test_cli_prints_the_table_with_the_chapter_row_and_skips_unscorable_runs(tmp
     assert main([str(good), str(bad), str(tmp_path / "missing"), "--out", str(out)]) == 1
     captured = capsys.readouterr()
     assert "| `good` | 1,234 | 1.000 | 1.000 |" in captured.out
-    assert "| chapter, Table 3.1 (manipulation) | 1.8M | 0.754 | 0.902 |" in captured.out
+    assert "| chapter, Table 3.1 (manipulation) | 1.8M | 0.754 ± 0.008 | 0.902 ± 0.003 |" in captured.out
     assert "bad/summary.json: no graph" in captured.err and "missing/summary.json: cannot read" in captured.err
     assert [r["run"] for r in json.loads(out.read_text())] == ["good"]
 
