@@ -11,7 +11,10 @@ writes the scores as JSON.
     python -m benchmarks.rescore_runs runs/manip-decay-s1 runs/manip-decay-s2 runs/manip-decay-s3 --mean
 
 ``--mean`` (for seeds of one configuration) adds a row of mean ± sample standard deviation per
-environment, the form of the chapter's 3-seed figures.
+environment, the form of the chapter's 3-seed figures. A single report's best-threshold F1 moves by
+a few hundredths from one report to the next, so ``--window S`` adds a second table: each run's
+scores averaged over its reports of the last S seconds (``history`` in ``summary.json``; runs
+started before a score existed have no value for it there).
 
 The CMI in ``summary.json`` is rounded to 5 decimals; scores computed from it can differ from the
 run's own in the last digit where an entry sits on a threshold.
@@ -37,8 +40,30 @@ COLUMNS = (("with_self_best_threshold_f1", "F1 (best thr.)"), ("with_self_best_t
            ("best_threshold_f1", "plain F1 (best thr.)"))
 
 
-def rescore(run_dir: Path) -> dict[str, float | str | int]:
-    """The scores of the last graph in ``run_dir/summary.json`` (``ValueError`` if it has none)."""
+WINDOW_COLUMNS = (("with_self_best_threshold_f1", "F1 (best thr.)"),
+                  ("with_self_best_threshold_accuracy", "acc. (best thr.)"), ("with_self_roc_auc", "ROC AUC"),
+                  ("f1", "plain F1 @ thr."))
+"""The scores averaged over a window of reports (``--window``)."""
+
+
+def window_scores(history: list[dict], seconds: float) -> dict[str, list[float]]:
+    """Per :data:`WINDOW_COLUMNS` key: [mean, sd, number of reports] over the reports of the last
+    ``seconds`` of ``history`` (keys no report in the window has are left out)."""
+    if not history:
+        return {}
+    end = max(float(h.get("time", 0.0)) for h in history)
+    recent = [h for h in history if float(h.get("time", 0.0)) >= end - seconds]
+    out = {}
+    for key, _ in WINDOW_COLUMNS:
+        values = np.array([h[key] for h in recent if h.get(key) is not None], np.float64)
+        if values.size:
+            out[key] = [float(values.mean()), float(values.std()), int(values.size)]
+    return out
+
+
+def rescore(run_dir: Path, window_s: float = 0.0) -> dict:
+    """The scores of the last graph in ``run_dir/summary.json`` (``ValueError`` if it has none); with
+    ``window_s``, also ``window``: :func:`window_scores` of its history."""
     path = run_dir / "summary.json"
     try:
         summary = json.loads(path.read_text())
@@ -50,8 +75,11 @@ def rescore(run_dir: Path) -> dict[str, float | str | int]:
     if cmi.shape != truth.shape:
         raise ValueError(f"{path}: cmi {cmi.shape} and true_graph {truth.shape} differ in shape")
     scores = score_graph(cmi, truth, float(summary["threshold"]))
-    return {"run": run_dir.name, "env": summary.get("env", ""), "env_steps": int(summary.get("graph_env_steps", 0)),
-            **scores}
+    row = {"run": run_dir.name, "env": summary.get("env", ""), "env_steps": int(summary.get("graph_env_steps", 0)),
+           **scores}
+    if window_s > 0:
+        row["window"] = window_scores(summary.get("history") or [], window_s)
+    return row
 
 
 def mean_sd(rows: list[dict]) -> dict[str, tuple[float, float]]:
@@ -81,21 +109,49 @@ def table(rows: list[dict], mean: bool = False) -> str:
     return "\n".join(lines)
 
 
+def window_table(rows: list[dict], seconds: float, mean: bool = False) -> str:
+    """Each run's scores over its last ``seconds`` (mean ± sd over its reports); with ``mean``, the
+    mean ± sample sd of those per-run means."""
+    lines = [f"| run (reports of the last {seconds:g} s) | reports | "
+             + " | ".join(title for _, title in WINDOW_COLUMNS) + " |", "|---|---|" + "---|" * len(WINDOW_COLUMNS)]
+    for row in rows:
+        w = row.get("window", {})
+        count = max((v[2] for v in w.values()), default=0)
+        lines.append(f"| `{row['run']}` | {count} | " + " | ".join(
+            f"{w[key][0]:.3f} ± {w[key][1]:.3f}" if key in w else "–" for key, _ in WINDOW_COLUMNS) + " |")
+    for env in sorted({row["env"] for row in rows}) if mean else ():
+        group = [row.get("window", {}) for row in rows if row["env"] == env]
+        cells = []
+        for key, _ in WINDOW_COLUMNS:
+            values = np.array([w[key][0] for w in group if key in w], np.float64)
+            cells.append("–" if not values.size else f"{values.mean():.3f} ± "
+                         f"{values.std(ddof=1) if values.size > 1 else 0.0:.3f} ({values.size})")
+        lines.append(f"| mean ± sd of the runs' means ({env}) | | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=Path("benchmark-results/rescore.json"))
     parser.add_argument("--mean", action="store_true", help="add mean ± sd rows (seeds of one configuration)")
+    parser.add_argument("--window", type=float, default=0.0, metavar="S",
+                        help="also average each run's reports of its last S seconds (0: off)")
     args = parser.parse_args(argv)
+    if args.window < 0:
+        parser.error("--window must be >= 0")
     rows, failed = [], 0
     for run_dir in args.run_dirs:
         try:
-            rows.append(rescore(run_dir))
+            rows.append(rescore(run_dir, args.window))
         except ValueError as exc:
             print(f"skipped: {exc}", file=sys.stderr)
             failed += 1
     if rows:
         print(table(rows, mean=args.mean))
+        if args.window > 0:
+            print()
+            print(window_table(rows, args.window, mean=args.mean))
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(rows, indent=1))
         print(f"\nwrote {args.out}")

@@ -5,17 +5,18 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from benchmarks.rescore_runs import main, rescore
 from envs.manipulation_truth import global_graph
 
 
-def _run(tmp_path: Path, name: str, cmi: np.ndarray | None) -> Path:
+def _run(tmp_path: Path, name: str, cmi: np.ndarray | None, history: list[dict] | None = None) -> Path:
     run = tmp_path / name
     run.mkdir()
     truth = global_graph()
     summary = {"env": "manipulation", "graph_env_steps": 1234, "threshold": 0.02, "true_graph": truth.tolist(),
-               "cmi": None if cmi is None else np.round(cmi, 5).tolist()}
+               "cmi": None if cmi is None else np.round(cmi, 5).tolist(), "history": history or []}
     (run / "summary.json").write_text(json.dumps(summary))
     return run
 
@@ -54,3 +55,18 @@ def test_mean_row_gives_mean_and_sample_sd_over_seeds(tmp_path: Path, capsys) ->
     line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| mean ± sd, 3 runs"))
     assert f"| {np.mean(accuracies):.3f} ± {np.std(accuracies, ddof=1):.3f} |" in line
     assert line.startswith("| mean ± sd, 3 runs (manipulation) | 1,234 | ")
+
+
+def test_window_averages_each_runs_last_reports(tmp_path: Path, capsys) -> None:
+    cmi = np.where(global_graph() > 0, 0.3, 0.001)
+    history = [{"time": 100.0 * k, "env_steps": 1000 * k, "f1": 0.05 * k, "with_self_best_threshold_f1": 0.1 * k}
+               for k in range(11)]  # reports at 0, 100, ..., 1000 s
+    older = [{k: v for k, v in h.items() if not k.startswith("with_self_")} for h in history]  # before the scoring
+    runs = [_run(tmp_path, "a", cmi, history), _run(tmp_path, "b", cmi, older)]
+    assert rescore(runs[0], window_s=300.0)["window"]["with_self_best_threshold_f1"] == pytest.approx(
+        [0.85, np.std([0.7, 0.8, 0.9, 1.0]), 4])  # the reports at 700-1000 s
+    assert main([*map(str, runs), "--window", "300", "--mean", "--out", str(tmp_path / "r.json")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "| `a` | 4 | 0.850 ± 0.112 | – | – | 0.425 ± 0.056 |" in lines
+    assert "| `b` | 4 | – | – | – | 0.425 ± 0.056 |" in lines
+    assert "| mean ± sd of the runs' means (manipulation) | | 0.850 ± 0.000 (1) | – | – | 0.425 ± 0.000 (2) |" in lines
