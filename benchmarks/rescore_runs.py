@@ -4,11 +4,16 @@ A run's summary keeps the final smoothed CMI matrix and the true graph, so a sco
 the run (``with_self_*``: every entry, self-edges included and kept, the scoring Table 3.1's
 numbers imply; see :mod:`causal.graph_metrics`) can be computed for it without running it again.
 Prints a markdown table (plain and with-self scores at the working threshold and at the best
-threshold of the linear sweep, with the chapter's figures as the last row where they exist) and
-writes the scores as JSON.
+threshold, found by :func:`causal.graph_metrics.best_threshold`'s exact search, with the chapter's
+figures as the last row where they exist) and writes the scores as JSON.
 
     python -m benchmarks.rescore_runs runs/manip-1w runs/manip-decay [--out benchmark-results/rescore.json]
     python -m benchmarks.rescore_runs runs/manip-decay-s1 runs/manip-decay-s2 runs/manip-decay-s3 --mean
+    python -m benchmarks.rescore_runs runs/manip-ev-s0 --graph final
+
+``--graph final`` scores each run's final graph (the final model's CMI on all its held-out data,
+``summary.json``'s ``final_graph``; :mod:`services.supervisor.final_graph`) instead of its last live
+report.
 
 ``--mean`` (for seeds of one configuration) adds a row of mean ± sample standard deviation per
 environment, the form of the chapter's 3-seed figures. A single report's best-threshold F1 moves by
@@ -61,21 +66,25 @@ def window_scores(history: list[dict], seconds: float) -> dict[str, list[float]]
     return out
 
 
-def rescore(run_dir: Path, window_s: float = 0.0) -> dict:
-    """The scores of the last graph in ``run_dir/summary.json`` (``ValueError`` if it has none); with
+def rescore(run_dir: Path, window_s: float = 0.0, graph: str = "last") -> dict:
+    """The scores of the last live graph in ``run_dir/summary.json``, or with ``graph="final"`` of its
+    final graph (``causeway final-graph``; ``ValueError`` if it has not the one asked for); with
     ``window_s``, also ``window``: :func:`window_scores` of its history."""
     path = run_dir / "summary.json"
     try:
         summary = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: cannot read a run summary ({exc})") from None
-    if summary.get("cmi") is None or summary.get("true_graph") is None:
+    scored = summary.get("final_graph") if graph == "final" else summary
+    if scored is None:
+        raise ValueError(f"{path}: no final graph (run `causeway final-graph --run-dir {run_dir}`)")
+    if scored.get("cmi") is None or scored.get("true_graph") is None:
         raise ValueError(f"{path}: no graph with a ground truth to score")
-    cmi, truth = np.asarray(summary["cmi"], np.float64), np.asarray(summary["true_graph"], np.uint8)
+    cmi, truth = np.asarray(scored["cmi"], np.float64), np.asarray(scored["true_graph"], np.uint8)
     if cmi.shape != truth.shape:
         raise ValueError(f"{path}: cmi {cmi.shape} and true_graph {truth.shape} differ in shape")
-    scores = score_graph(cmi, truth, float(summary["threshold"]))
-    row = {"run": run_dir.name, "env": summary.get("env", ""), "env_steps": int(summary.get("graph_env_steps", 0)),
+    scores = score_graph(cmi, truth, float(scored["threshold"]))
+    row = {"run": run_dir.name, "env": summary.get("env", ""), "env_steps": int(scored.get("graph_env_steps", 0)),
            **scores}
     if window_s > 0:
         row["window"] = window_scores(summary.get("history") or [], window_s)
@@ -135,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run_dirs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=Path("benchmark-results/rescore.json"))
     parser.add_argument("--mean", action="store_true", help="add mean ± sd rows (seeds of one configuration)")
+    parser.add_argument("--graph", choices=("last", "final"), default="last",
+                        help="score each run's last live report or its final graph (all held-out data)")
     parser.add_argument("--window", type=float, default=0.0, metavar="S",
                         help="also average each run's reports of its last S seconds (0: off)")
     args = parser.parse_args(argv)
@@ -143,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, failed = [], 0
     for run_dir in args.run_dirs:
         try:
-            rows.append(rescore(run_dir, args.window))
+            rows.append(rescore(run_dir, args.window, args.graph))
         except ValueError as exc:
             print(f"skipped: {exc}", file=sys.stderr)
             failed += 1

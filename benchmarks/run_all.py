@@ -6,7 +6,8 @@ the collection comparison (``make bench-collection``, ~1 h), the chapter-3 gener
 (``python -m benchmarks.manipulation_contacts --run-dir RUN``, needs a manipulation run) and CDL
 training settings on one fixed manipulation dataset (``python -m benchmarks.manipulation_offline``, ~46 min
 with its shards cached, ~12 more to collect them). ``python -m benchmarks.rescore_runs RUN...`` scores
-finished runs again from their ``summary.json`` (Table 3.1's scoring beside ours).
+finished runs again from their ``summary.json`` (Table 3.1's scoring beside ours), and
+``python -m benchmarks.cmi_estimation --run-dir RUN`` scores a run's model under each CMI estimation choice.
 """
 from __future__ import annotations
 

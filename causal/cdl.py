@@ -312,10 +312,26 @@ class CDLModel(nn.Module):
             terms.append(feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True))
         return self.nll(self.predict(torch.cat(terms, dim=1)), state, next_state)
 
+    def constant_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """[I] bool, graph column order: inputs (state factors, then the action) that take a single
+        value over all of these samples."""
+        same = torch.cat([(state == state[:1]).all(dim=0), (action == action[:1]).all(dim=0).all()[None]])
+        slots = [self.layout.slots(j) for j in range(self.num_outputs)] + [1]
+        owner = torch.repeat_interleave(torch.arange(self.num_inputs), torch.tensor(slots))
+        return torch.zeros(self.num_inputs, dtype=torch.long).index_add_(0, owner, (~same).long()) == 0
+
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
-            chunk: int = 256) -> torch.Tensor:
-        """CMI^{ij} of eq. 3.2 for every output j and input i: mean NLL(drop i) - NLL(full), [J, I] nats."""
+            chunk: int = 256, zero_constant_inputs: bool = True) -> torch.Tensor:
+        """CMI^{ij} of eq. 3.2 for every output j and input i: mean NLL(drop i) - NLL(full), [J, I] nats.
+
+        An input that is constant over the samples has CMI exactly 0 (a constant is independent of
+        everything), and its column is set so. The network's estimate there is not 0: a constant
+        input's feature is a constant vector that the max can use as a floor, a learned bias, and
+        the drop-one model is trained less than the full one, so dropping it costs a little
+        likelihood and reads as an edge. On manipulation this made the markers' constant ``z``
+        parents of the robot and ``mov`` (false edges, and markers in the action-relevant class).
+        ``zero_constant_inputs=False`` returns the network's estimate everywhere (for comparison)."""
         total = torch.zeros(self.num_outputs, self.num_inputs)
         for start in range(0, state.shape[0], chunk):
             s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
@@ -323,7 +339,10 @@ class CDLModel(nn.Module):
             full_nll = self.nll(self.predict(first), s, n)
             dropped_nll = self.nll(self.predict(torch.where(is_max, runner_up, first)), s, n)
             total += (dropped_nll - full_nll).sum(dim=-1)
-        return self.to_graph_order(total / max(state.shape[0], 1))
+        cmi = self.to_graph_order(total / max(state.shape[0], 1))
+        if zero_constant_inputs and state.shape[0]:
+            cmi[:, self.constant_inputs(state, action)] = 0.0
+        return cmi
 
 
 def model_config_json(layout: FactorLayout, cfg: CDLConfig) -> str:

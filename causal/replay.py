@@ -54,8 +54,13 @@ class ReplayBuffer:
                 "cursor": self.cursor, "added": self.added}
 
     def load_state_dict(self, saved: dict) -> None:
-        n = min(int(saved["state"].shape[0]), self.capacity)
-        self.state[:n] = saved["state"][:n].numpy()
-        self.action[:n] = saved["action"][:n].numpy()
-        self.next_state[:n] = saved["next_state"][:n].numpy()
-        self.size, self.cursor, self.added = n, int(saved["cursor"]) % self.capacity, int(saved["added"])
+        """Restore saved rows. A full, wrapped ring saved with a smaller capacity is laid out oldest
+        first, so that the new rows are appended after its newest instead of overwriting them."""
+        rows, cursor = int(saved["state"].shape[0]), int(saved["cursor"])
+        arrays = [saved[k].numpy() for k in ("state", "action", "next_state")]
+        if int(saved["added"]) > rows and rows < self.capacity:
+            arrays, cursor = [np.roll(a, -cursor, axis=0) for a in arrays], rows
+        n = min(rows, self.capacity)
+        for mine, theirs in zip((self.state, self.action, self.next_state), arrays):
+            mine[:n] = theirs[:n]
+        self.size, self.cursor, self.added = n, cursor % self.capacity, int(saved["added"])

@@ -8,6 +8,9 @@ stack (``causeway <command> --help`` for each; ``services/ops/``):
     causeway scale env-worker N (--run ... | --run-dir ... | --compose-project P [--docker-host URL])
     causeway stop       (--run RUN [--connect E] | --run-dir runs/X)
     causeway checkpoint (--run RUN [--connect E] | --run-dir runs/X)
+
+and one acts on a finished run: ``causeway final-graph --run-dir runs/X`` (the final model's graph on
+all held-out data into the run's summary; ``services.supervisor.final_graph``).
 """
 from __future__ import annotations
 
@@ -65,6 +68,7 @@ COMMANDS: dict[str, Command] = {
     "scale": _operator("scale", "control", "scale_main"),
     "stop": _operator("stop", "control", "stop_main"),
     "checkpoint": _operator("checkpoint", "control", "checkpoint_main"),
+    "final-graph": lambda argv: importlib.import_module("services.supervisor.final_graph").main(argv),
 }
 
 

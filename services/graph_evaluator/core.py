@@ -40,6 +40,7 @@ class GraphEvaluatorCore:
         self.model_config = ""
         self.weights: Weights | None = None
         self.evaluated_version = -1
+        self.evaluated_updates = 0
         self.cmi_ema: np.ndarray | None = None
         self.history: list[dict[str, float]] = []
 
@@ -73,10 +74,30 @@ class GraphEvaluatorCore:
         s, a, nxt = (torch.from_numpy(x[: self.heldout.size][index]) for x in
                      (self.heldout.state, self.heldout.action, self.heldout.next_state))
         cmi = self.model.cmi(s, a, nxt).numpy()
-        alpha = self.cfg.cmi_ema
+        alpha = self.previous_weight(self.weights.updates)
         self.cmi_ema = cmi if self.cmi_ema is None else alpha * self.cmi_ema + (1 - alpha) * cmi
-        self.evaluated_version = self.weights.version
+        self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(n)
+
+    def evaluate_final(self) -> GraphReport:
+        """Algorithm 1, line 8: after training, the graph of the newest weights from CMI on every
+        held-out transition, on its own (the running average, which mixes earlier models and
+        draws of ``eval_samples``, is replaced by it)."""
+        assert self.model is not None and self.weights is not None
+        self.cmi_ema = self.model.cmi(*self.heldout.all()).numpy()
+        self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
+        return self.report(self.heldout.size)
+
+    def previous_weight(self, updates: int) -> float:
+        """Weight of the running CMI average against an estimate from weights at ``updates``.
+
+        The reference keeps an EMA of 0.999 per training update; we evaluate every few seconds, so
+        the previous estimate keeps ``cmi_ema ** (updates since it)``: the same memory in updates
+        however fast the learner runs or often we evaluate (about 1,000 updates at 0.999). Fewer
+        updates than last time means a new model (a learner that started over): start afresh.
+        """
+        since = updates - self.evaluated_updates
+        return float(self.cfg.cmi_ema ** max(since, 1)) if since >= 0 else 0.0
 
     def report(self, num_heldout: int) -> GraphReport:
         cmi = self.cmi_ema.astype(np.float32)
@@ -99,7 +120,7 @@ class GraphEvaluatorCore:
 
     def checkpoint(self, path: Path) -> None:
         state = {"fingerprint": self.fingerprint(), "heldout": self.heldout.state_dict(),
-                 "evaluated_version": self.evaluated_version}
+                 "evaluated_version": self.evaluated_version, "evaluated_updates": self.evaluated_updates}
         if self.cmi_ema is not None:
             state["cmi_ema"] = torch.from_numpy(self.cmi_ema)
         save_checkpoint(state, path)
@@ -111,6 +132,7 @@ class GraphEvaluatorCore:
         check_fingerprint(saved, self.fingerprint(), path)
         self.heldout.load_state_dict(saved["heldout"])
         self.evaluated_version = int(saved["evaluated_version"])
+        self.evaluated_updates = int(saved.get("evaluated_updates", 0))
         if "cmi_ema" in saved:
             self.cmi_ema = saved["cmi_ema"].numpy()
         return True

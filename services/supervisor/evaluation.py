@@ -79,6 +79,11 @@ def load_cdl(run_dir: Path) -> CDLModel:
     saved = load_checkpoint(path)
     if saved is None:
         raise FileNotFoundError(f"no dynamics-learner checkpoint at {path}")
+    return cdl_from_checkpoint(saved)
+
+
+def cdl_from_checkpoint(saved: dict) -> CDLModel:
+    """The CDL model of a loaded dynamics-learner checkpoint, in eval mode."""
     model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
     model.load_state_dict(saved["trainer"]["model"])
     return model.eval()

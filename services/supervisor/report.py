@@ -31,28 +31,47 @@ def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict
     if report is None:
         out["graph_report"] = None
         return out
+    out.update(graph_fields(report))
+    out["scoring"] = ("off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored); "
+                      "identifiable_*: also without the columns of factors constant by construction; "
+                      "with_self_*: every entry, self-edges included and kept (Table 3.1's scoring)")
+    out["history"] = history
+    return out
+
+
+def graph_fields(report: GraphReport) -> dict[str, Any]:
+    """A graph report's scores, matrices, abstraction and object-level scores, for a summary."""
     abstraction = Abstraction(report.controllable, report.action_relevant, report.action_irrelevant)
-    out.update({k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES + WITH_SELF_SCORES
-                if k in report.metrics})
+    out: dict[str, Any] = {k: float(report.metrics[k]) for k in SUMMARY_SCORES + IDENTIFIABLE_SCORES + WITH_SELF_SCORES
+                           if k in report.metrics}
     out.update({
         "threshold": report.threshold,
         "weights_version": report.weights_version,
         "graph_env_steps": report.env_steps,
         "graph_updates": report.updates,
+        "num_heldout": report.num_heldout,
         "factor_names": list(report.factor_names) + ["action"],
         "learned_graph": report.adjacency.astype(int).tolist(),
         "true_graph": report.true_graph.astype(int).tolist() if report.true_graph is not None else None,
         "cmi": np.round(report.cmi.astype(float), 5).tolist(),
         "abstraction": abstraction.named(report.factor_names),
-        "scoring": "off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored); "
-                   "identifiable_*: also without the columns of factors constant by construction; "
-                   "with_self_*: every entry, self-edges included and kept (Table 3.1's scoring)",
-        "history": history,
     })
     objects = object_scores(report.adjacency, report.true_graph, report.factor_names)
     if objects is not None:
         out["object_level"] = objects
     return out
+
+
+def score_line(metrics: dict[str, float]) -> str:
+    """One line of a report's headline scores (Table 3.1's beside ours, where present)."""
+    if "f1" not in metrics:
+        return "no ground truth to score against"
+    parts = [f"F1 {metrics['f1']:.3f}", f"accuracy {metrics['accuracy']:.3f}",
+             f"best-threshold F1 {metrics['best_threshold_f1']:.3f}"]
+    if "with_self_best_threshold_f1" in metrics:
+        parts.append(f"Table 3.1 scoring: F1 {metrics['with_self_best_threshold_f1']:.3f} "
+                     f"accuracy {metrics['with_self_best_threshold_accuracy']:.3f}")
+    return ", ".join(parts)
 
 
 def object_scores(adjacency: np.ndarray, truth: np.ndarray | None, names: tuple[str, ...]) -> dict[str, Any] | None:
@@ -78,7 +97,7 @@ def write_summary(path: Path, content: dict[str, Any]) -> None:
     path.write_text(json.dumps(content, indent=1) + "\n")
 
 
-def plot_graphs(report: GraphReport, path: Path) -> None:
+def plot_graphs(report: GraphReport, path: Path, label: str = "last report") -> None:
     """Heat maps: learned CMI graph, true graph, and the comparison (TP / FP / FN marked)."""
     names = list(report.factor_names) + ["action"]
     panels = [("learned: log10 CMI (nats), self-edges blank", _log_cmi(report.cmi, report.threshold), "viridis")]
@@ -90,8 +109,8 @@ def plot_graphs(report: GraphReport, path: Path) -> None:
     for ax, (title, matrix, cmap) in zip(axes[0], panels):
         _heatmap(ax, matrix, cmap, title, names, report.factor_names)
     f1 = report.metrics.get("f1")
-    fig.suptitle(f"{report.kind} graph, weights v{report.weights_version}, {report.env_steps} env steps"
-                 + (f", F1 {f1:.3f}" if f1 is not None else ""))
+    fig.suptitle(f"{report.kind} {label}, weights v{report.weights_version}, {report.env_steps} env steps, "
+                 f"CMI on {report.num_heldout} held-out transitions" + (f", F1 {f1:.3f}" if f1 is not None else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
-from proto.messages import Control, GraphReport, ServiceStats
+from proto.messages import Control, EnvSpec, GraphReport, ServiceStats
 from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from services.dashboard.config import DashboardConfig
@@ -40,6 +40,7 @@ from services.supervisor import report as reporting
 from services.supervisor.config import COLLECTORS, INTRINSIC, TASKS, RunConfig
 from services.env_worker.core import env_kwargs
 from services.supervisor.evaluation import CHEMICAL_ENVS, evaluate_run, plot_evaluation
+from services.supervisor.final_graph import add_final_graph, final_graph
 from services.supervisor.processes import FatalServiceError, ManagedProcess, stop_all
 from services.supervisor.progress import Progress
 
@@ -349,6 +350,7 @@ class Supervisor:
                                      if self.budget_reached_at is not None else 0.0),
                 "git_revision": _git_revision()}
         content = reporting.summary(report, base, history)
+        final = self._final_graph() if report is not None and cfg.evaluate and not self.failure else None
         if cfg.collector != "random":
             with self._lock:
                 stats = {ident: dict(s.values) for ident, s in self.progress.stats.items()}
@@ -356,14 +358,31 @@ class Supervisor:
             reporting.plot_policy(content["policy"], self.run_dir / "policy.png")
         if report is not None and cfg.evaluate and cfg.env in CHEMICAL_ENVS and not self.failure:
             content["evaluation"] = self._evaluate(report)
-        reporting.write_summary(self.run_dir / "summary.json", content)
         if report is not None:
             reporting.plot_graphs(report, self.run_dir / "graph.png")
             reporting.plot_object_graphs(report, self.run_dir / "object_graph.png")
             reporting.plot_learning_curve(history, self.run_dir / "learning_curve.png")
+        if final is not None:
+            add_final_graph(content, final, self.run_dir)
+        reporting.write_summary(self.run_dir / "summary.json", content)
         if "prediction" in content.get("evaluation", {}):
             plot_evaluation(content["evaluation"], self.run_dir / "evaluation.png")
         return content
+
+    def _final_graph(self) -> GraphReport | None:
+        """The final model's graph on all held-out data (services.supervisor.final_graph); a failure
+        is logged and leaves the summary with the live reports only."""
+        cfg = self.cfg
+        self.progress.stream.write("final graph: CMI of the final model on every held-out transition ...\n")
+        try:
+            final = final_graph(self.run_dir, service_configs(cfg, self.connect)["graph-evaluator"], run_env_spec(cfg))
+        except Exception:  # noqa: BLE001 - the run itself is done
+            log.exception("final graph evaluation failed")
+            return None
+        if final is not None:
+            self.progress.stream.write(f"final graph: {final.num_heldout:,} held-out transitions, "
+                                       f"{reporting.score_line(final.metrics)}\n")
+        return final
 
     def _evaluate(self, report: GraphReport) -> dict:
         """Chapter 3's evaluations on this run's final models (see services.supervisor.evaluation);
@@ -391,16 +410,21 @@ def learner_caught_up(report: GraphReport | None, ratio: float, max_env_steps: i
 def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig, deterministic: bool = True):
     """The policy-learner's last checkpointed policy as ``obs -> action`` (the mode, or sampled), or None.
     A policy over skills (``policy_cfg.skills``) returns the option to run next."""
-    from envs import make_env
     from services.policy_learner.core import PolicyLearnerCore
 
     path = run_dir / "checkpoints" / "policy-learner-0.pt"
     if not path.exists():
         return None
-    spec = make_env(cfg.env, **env_kwargs(worker_config(cfg, "", 0))).unwrapped.env_spec()
-    core = PolicyLearnerCore(policy_cfg, spec)
+    core = PolicyLearnerCore(policy_cfg, run_env_spec(cfg))
     core.restore(path)
     return lambda obs: core.agent.act(obs, deterministic=deterministic)
+
+
+def run_env_spec(cfg: RunConfig) -> EnvSpec:
+    """The EnvSpec of the run's environment, as its first env-worker builds it."""
+    from envs import make_env
+
+    return make_env(cfg.env, **env_kwargs(worker_config(cfg, "", 0))).unwrapped.env_spec()
 
 
 def _git_revision() -> str:
@@ -414,4 +438,10 @@ def _git_revision() -> str:
 def print_summary(content: dict) -> None:
     keys = ("env", "graph", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
             "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
-    print(json.dumps({k: content.get(k) for k in keys}, indent=1))
+    shown = {k: content.get(k) for k in keys}
+    if "final_graph" in content:
+        final = content["final_graph"]
+        shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "accuracy", "f1", "best_threshold_f1",
+                                                          "with_self_best_threshold_f1",
+                                                          "with_self_best_threshold_accuracy")}
+    print(json.dumps(shown, indent=1))

@@ -70,3 +70,17 @@ def test_window_averages_each_runs_last_reports(tmp_path: Path, capsys) -> None:
     assert "| `a` | 4 | 0.850 ± 0.112 | – | – | 0.425 ± 0.056 |" in lines
     assert "| `b` | 4 | – | – | – | 0.425 ± 0.056 |" in lines
     assert "| mean ± sd of the runs' means (manipulation) | | 0.850 ± 0.000 (1) | – | – | 0.425 ± 0.000 (2) |" in lines
+
+
+def test_graph_final_scores_the_final_graph_and_skips_runs_without_one(tmp_path: Path, capsys) -> None:
+    truth = global_graph()
+    run = _run(tmp_path, "with-final", np.where(truth > 0, 0.001, 0.3))  # the last live report: all wrong
+    summary = json.loads((run / "summary.json").read_text())
+    summary["final_graph"] = {"graph_env_steps": 5678, "threshold": 0.02, "true_graph": truth.tolist(),
+                              "cmi": np.where(truth > 0, 0.3, 0.0).tolist()}
+    (run / "summary.json").write_text(json.dumps(summary))
+    final, last = rescore(run, graph="final"), rescore(run)
+    assert final["env_steps"] == 5678 and final["f1"] == 1.0 and last["f1"] == 0.0
+    without = _run(tmp_path, "without-final", np.where(truth > 0, 0.3, 0.0))
+    assert main([str(run), str(without), "--graph", "final", "--out", str(tmp_path / "r.json")]) == 1
+    assert "without-final/summary.json: no final graph" in capsys.readouterr().err

@@ -53,6 +53,26 @@ def test_cdl_recovers_small_graph_exactly() -> None:
     assert scores["f1"] == 1.0 and scores["roc_auc"] == 1.0
 
 
+def test_cmi_of_an_input_constant_over_the_samples_is_zero() -> None:
+    """A constant carries no information: its column is 0, the other columns are the estimate as is."""
+    torch.manual_seed(1)
+    model = CDLModel(LAYOUT, CDLConfig(feature_hidden=16, feature_dim=8, predictor_hidden=16))
+    s, a, n = toy_batch(np.random.default_rng(1), 50)
+    varied = model.cmi(s, a, n)
+    assert not model.constant_inputs(s, a).any() and (varied != 0).all()
+    s[:, 2], s[:, 3] = 0.7, 1.0  # continuous c and categorical k held fixed
+    held = model.cmi(s, a, n)
+    assert model.constant_inputs(s, a).tolist() == [False, False, True, True, False]
+    assert (held[:, 2:4] == 0).all() and (held[:, [0, 1, 4]] != 0).all()
+    full = torch.ones(4, 5, dtype=torch.bool)
+    with torch.no_grad():  # the varying columns are still the plain drop-one estimate
+        mask = full.clone()
+        mask[:, 0] = False
+        expected = (model.masked_nll(s, a, n, mask) - model.masked_nll(s, a, n, full)).mean(dim=1)
+    torch.testing.assert_close(held[:, 0], expected, rtol=1e-4, atol=1e-5)
+    assert model.constant_inputs(s, torch.ones_like(a)).tolist()[-1] is True
+
+
 def test_cmi_matches_explicit_masks() -> None:
     """The top-2 shortcut equals masking each input to -inf and taking the max, input by input."""
     torch.manual_seed(1)

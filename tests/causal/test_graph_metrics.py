@@ -79,7 +79,7 @@ def test_with_self_scores_count_every_entry_with_the_self_edges_kept_by_hand() -
     assert s["with_self_recall"] == 4 / 6 and abs(s["with_self_f1"] - 8 / 11) < 1e-12
     # The plain scores of the same graph: tp 1, fp 1, fn 2, tn 5 of 9.
     assert s["accuracy"] == 6 / 9 and s["recall"] == 1 / 3
-    # The sweep spans the finite (off-diagonal) values 0..0.8; at (0, 0.01] it keeps 1<-a too: tp 5, fp 1, fn 1.
+    # Over the finite (off-diagonal) values 0..0.8 the best is at 0.01, which keeps 1<-a too: tp 5, fp 1, fn 1.
     assert 0 < s["with_self_best_threshold"] <= 0.01 and abs(s["with_self_best_threshold_f1"] - 5 / 6) < 1e-12
     # Positives 0.8, 0.01, 0 (0<-1) and three self-edges at +inf against negatives 0 x 5 and 0.5:
     # 6 + 5 + 2.5 (ties) + 18 = 31.5 of 36 pairs.
@@ -101,3 +101,30 @@ def test_table_3_1_implies_self_edges_are_scored_on_manipulation() -> None:
     assert (truth.sum(), truth[scored_entries(truth.shape)].sum()) == (135, 112)
     assert abs(implied_accuracy(np.ones(truth.shape, bool)) - accuracy) < 0.001
     assert abs(implied_accuracy(scored_entries(truth.shape)) - accuracy) > 0.01
+
+
+def test_exact_best_threshold_equals_trying_every_threshold() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        truth = rng.random((6, 7)) < 0.3
+        scores = np.round(rng.normal(truth * 0.05, 0.03), 3)  # rounded: ties between entries
+        mask = scored_entries(truth.shape)
+        threshold, best = best_threshold(scores, truth)
+        brute = max(binary_scores(scores >= t, truth)["f1"] for t in np.unique(scores[mask]))
+        assert abs(best["f1"] - brute) < 1e-12
+        assert best == binary_scores(scores >= threshold, truth)
+        _, grid = best_threshold(scores, truth, num=200)
+        assert best["f1"] >= grid["f1"] - 1e-12
+
+
+def test_exact_best_threshold_resolves_weak_edges_a_coarse_grid_cannot() -> None:
+    # One strong edge (5 nats) stretches a 200-step grid to 0.025-nat steps; the weak true edge
+    # (0.012) sits between two non-edges (0.004, 0.02) within one step.
+    truth = np.array([[1, 1, 1, 0, 0], [0, 1, 0, 0, 0], [0, 0, 1, 1, 0], [0, 0, 0, 1, 0]], dtype=bool)
+    scores = np.zeros(truth.shape)
+    scores[0, 1], scores[0, 2], scores[2, 3] = 5.0, 0.03, 0.012
+    scores[0, 3], scores[1, 0] = 0.004, 0.011
+    threshold, best = best_threshold(scores, truth)
+    assert threshold == 0.012 and best["f1"] == 1.0
+    grid_threshold, grid = best_threshold(scores, truth, num=200)
+    assert grid["f1"] < 1.0 and grid_threshold != threshold

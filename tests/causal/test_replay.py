@@ -28,3 +28,16 @@ def test_ring_buffer_overwrites_oldest_and_round_trips() -> None:
     assert clone.size == 5 and (clone.state == buf.state).all() and clone.cursor == buf.cursor
     s, a, n = buf.sample(7)
     assert s.shape == (7, 2) and (n - s == 1).all()
+
+
+def test_a_wrapped_ring_restored_into_a_larger_one_keeps_its_newest_rows() -> None:
+    small = ReplayBuffer(5, state_dim=1, action_dim=1)
+    for start in (0, 3, 6):  # rows 4..8 kept, the cursor mid-ring
+        rows = np.arange(start, start + 3, dtype=np.float32)[:, None]
+        small.add(rows, rows, rows)
+    large = ReplayBuffer(8, 1, 1)
+    large.load_state_dict(small.state_dict())
+    assert large.size == 5 and large.state[:5, 0].tolist() == [4, 5, 6, 7, 8] and large.cursor == 5
+    more = np.array([[9], [10], [11], [12]], np.float32)
+    large.add(more, more, more)  # fills the new room, then overwrites the oldest (4), not the newest
+    assert large.size == 8 and sorted(large.state[:, 0].tolist()) == list(range(5, 13))

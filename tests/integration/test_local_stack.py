@@ -104,6 +104,10 @@ def test_local_stack_learns_survives_sigkill_and_reports(tmp_path: Path) -> None
     assert summary["factor_names"][:3] == ["obj0.color", "obj0.x", "obj0.y"]
     assert (run_dir / "graph.png").stat().st_size > 10_000
     assert (run_dir / "config.json").exists()
+    # The final graph (Algorithm 1, line 8): the last learner checkpoint on all held-out transitions.
+    final = summary["final_graph"]
+    assert final["num_heldout"] >= summary["num_heldout"] and final["graph_updates"] >= summary["graph_updates"]
+    assert np.array(final["cmi"]).shape == (9, 10) and 0.0 <= final["f1"] <= 1.0
     # The post-run evaluation: k-step colour accuracy of the final CDL model, ID and OOD.
     evaluation = summary["evaluation"]
     assert "error" not in evaluation, evaluation

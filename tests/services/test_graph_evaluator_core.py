@@ -51,3 +51,53 @@ def test_chemical_reports_identical_identifiable_scores() -> None:
     m = _report_metrics(spec, rng.uniform(0, 0.05, spec.global_graph.shape))
     paper = {k: v for k, v in m.items() if not k.startswith(("identifiable_", "unidentifiable_", "with_self_"))}
     assert {k: m[f"identifiable_{k}"] for k in paper} == paper and m["unidentifiable_true_edges"] == 0.0
+
+
+def test_cmi_average_keeps_the_reference_memory_per_learner_update() -> None:
+    core = GraphEvaluatorCore(GraphEvaluatorConfig(cmi_ema=0.999), _manipulation_spec())
+    core.evaluated_updates = 1_000
+    assert abs(core.previous_weight(1_100) - 0.999 ** 100) < 1e-12  # 100 updates on: ~0.905
+    assert core.previous_weight(1_000) == 0.999  # a newer version without updates: barely moved
+    assert core.previous_weight(400) == 0.0  # fewer updates: a new model, so the average starts over
+
+
+def test_evaluations_average_cmi_by_updates_and_resume(tmp_path) -> None:
+    import torch
+
+    from causal.cdl import CDLConfig, CDLModel, export_tensors, model_config_json
+    from causal.factored import FactorLayout
+
+    spec = EnvWorkerCore(EnvWorkerConfig(graph="chain", num_objects=3)).spec
+    cfg = GraphEvaluatorConfig(min_heldout=64, eval_samples=64, cmi_ema=0.99)
+    core = GraphEvaluatorCore(cfg, spec)
+    rng = np.random.default_rng(0)
+    batch_rows = 64
+    state = rng.integers(0, 5, (batch_rows, spec.state_dim)).astype(np.float32)
+    core.heldout.add(state, rng.integers(0, 15, (batch_rows, 1)).astype(np.float32), state)
+    layout = FactorLayout.from_spec(spec)
+    estimates = []
+    for version, updates in ((1, 100), (2, 150)):
+        model = CDLModel(layout, CDLConfig())
+        core.load_weights(Weights(model="cdl", version=version, config_json=model_config_json(layout, CDLConfig()),
+                                  env_steps=10, updates=updates, tensors=export_tensors(model)))
+        before = None if core.cmi_ema is None else core.cmi_ema.copy()
+        core.evaluate()
+        held = (core.heldout.state, core.heldout.action, core.heldout.next_state)
+        fresh = core.model.cmi(*(torch.from_numpy(x[:batch_rows]) for x in held)).numpy()  # all of it
+        estimates.append((before, fresh, core.cmi_ema.copy()))
+    before, fresh, after = estimates[1]
+    weight = 0.99 ** 50
+    assert np.allclose(after, weight * before + (1 - weight) * fresh, atol=1e-6)
+    assert np.allclose(estimates[0][2], estimates[0][1], atol=1e-6)  # the first estimate is taken as is
+    core.checkpoint(tmp_path / "ev.pt")
+    again = GraphEvaluatorCore(cfg, spec)
+    assert again.restore(tmp_path / "ev.pt")
+    assert (again.evaluated_version, again.evaluated_updates) == (2, 150)
+    assert np.array_equal(again.cmi_ema, core.cmi_ema)
+
+
+def test_evaluator_config_rejects_a_moving_average_that_never_moves() -> None:
+    import pytest
+
+    with pytest.raises(ValueError, match="cmi_ema"):
+        GraphEvaluatorConfig(cmi_ema=1.0)
