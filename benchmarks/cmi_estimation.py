@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from benchmarks.manipulation_offline import collect_shard, load_shards, parse_shard
+from causal.cdl import CDLConfig
 from causal.graph_metrics import best_threshold, binary_scores, roc_auc, self_edges_kept
 from envs.manipulation_truth import global_graph
 from services.supervisor.evaluation import load_cdl
@@ -46,7 +47,7 @@ def table_3_1(cmi: np.ndarray, truth: np.ndarray, grid: bool) -> dict[str, float
     threshold, best = best_threshold(kept, truth, num=200 if grid else None, mask=every)
     return {"f1": best["f1"], "accuracy": best["accuracy"], "precision": best["precision"],
             "recall": best["recall"], "threshold": threshold, "roc_auc": roc_auc(kept, truth, every),
-            "plain_f1_at_0.02": binary_scores(cmi >= 0.02, truth)["f1"]}
+            "plain_f1_at_0.02": binary_scores(cmi >= CDLConfig().cmi_threshold, truth)["f1"]}
 
 
 def estimates(model, data: tuple[torch.Tensor, ...], samples: int, repeats: int, seed: int) -> dict:
