@@ -33,7 +33,7 @@ import torch
 
 from benchmarks.manipulation_offline import collect_shard, load_shards, parse_shard
 from causal.cdl import CDLConfig
-from causal.graph_metrics import best_threshold, binary_scores, roc_auc, self_edges_kept
+from causal.graph_metrics import score_graph
 from envs.manipulation_truth import global_graph
 from services.supervisor.evaluation import load_cdl
 
@@ -43,11 +43,11 @@ WEAK = 0.05
 
 def table_3_1(cmi: np.ndarray, truth: np.ndarray, grid: bool) -> dict[str, float]:
     """With-self best-threshold F1 / accuracy and ROC AUC (Table 3.1's scoring), plain F1 at 0.02."""
-    kept, every = self_edges_kept(cmi), np.ones(truth.shape, bool)
-    threshold, best = best_threshold(kept, truth, num=200 if grid else None, mask=every)
-    return {"f1": best["f1"], "accuracy": best["accuracy"], "precision": best["precision"],
-            "recall": best["recall"], "threshold": threshold, "roc_auc": roc_auc(kept, truth, every),
-            "plain_f1_at_0.02": binary_scores(cmi >= CDLConfig().cmi_threshold, truth)["f1"]}
+    s = score_graph(cmi, truth, CDLConfig().cmi_threshold, num=200 if grid else None)
+    return {"f1": s["with_self_best_threshold_f1"], "accuracy": s["with_self_best_threshold_accuracy"],
+            "precision": s["with_self_best_threshold_precision"], "recall": s["with_self_best_threshold_recall"],
+            "threshold": s["with_self_best_threshold"], "roc_auc": s["with_self_roc_auc"],
+            "plain_f1_at_0.02": s["f1"]}
 
 
 def estimates(model, data: tuple[torch.Tensor, ...], samples: int, repeats: int, seed: int) -> dict:

@@ -129,7 +129,8 @@ def _count_at_or_above(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray
 
 
 def score_graph(
-    cmi: np.ndarray, truth: np.ndarray, threshold: float, constant_factors: Sequence[int] | None = None
+    cmi: np.ndarray, truth: np.ndarray, threshold: float, constant_factors: Sequence[int] | None = None,
+    num: int | None = None,
 ) -> dict[str, float]:
     """All the chapter's metrics: at the working threshold, ROC AUC, and at the best threshold.
 
@@ -137,21 +138,23 @@ def score_graph(
     (module docstring: the scoring Table 3.1's numbers imply). With ``constant_factors`` (factor
     indices, possibly none) the same metrics over
     :func:`identifiable_entries` follow, prefixed ``identifiable_`` (equal to the others when
-    nothing is constant), with ``unidentifiable_true_edges``: the true edges left out."""
-    scores = _scores(cmi, truth, threshold, scored_entries(truth.shape))
+    nothing is constant), with ``unidentifiable_true_edges``: the true edges left out. ``num`` selects
+    the best-threshold search (:func:`best_threshold`: exact by default)."""
+    scores = _scores(cmi, truth, threshold, scored_entries(truth.shape), num)
     scores.update({f"with_self_{k}": v for k, v in
-                   _scores(self_edges_kept(cmi), truth, threshold, np.ones(truth.shape, bool)).items()})
+                   _scores(self_edges_kept(cmi), truth, threshold, np.ones(truth.shape, bool), num).items()})
     if constant_factors is not None:
         mask = identifiable_entries(truth.shape, constant_factors)
-        scores.update({f"identifiable_{k}": v for k, v in _scores(cmi, truth, threshold, mask).items()})
+        scores.update({f"identifiable_{k}": v for k, v in _scores(cmi, truth, threshold, mask, num).items()})
         scores["unidentifiable_true_edges"] = float(np.sum(truth.astype(bool) & scored_entries(truth.shape) & ~mask))
     return scores
 
 
-def _scores(cmi: np.ndarray, truth: np.ndarray, threshold: float, mask: np.ndarray) -> dict[str, float]:
+def _scores(cmi: np.ndarray, truth: np.ndarray, threshold: float, mask: np.ndarray,
+            num: int | None = None) -> dict[str, float]:
     scores = binary_scores(cmi >= threshold, truth, mask)
     scores["roc_auc"] = roc_auc(cmi, truth, mask)
-    t, best = best_threshold(cmi, truth, mask=mask)
+    t, best = best_threshold(cmi, truth, num, mask)
     scores["best_threshold"] = t
     scores.update({f"best_threshold_{k}": v for k, v in best.items()})
     return scores
