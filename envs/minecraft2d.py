@@ -30,6 +30,10 @@ Sources never run out; there are no obstacles (every layout is solvable). 300 st
 holding it; the stages are the tree's items up to it, in the order above, each reached once held.
 Ground truth, stages and the rest of the contract as for the household tasks
 (:mod:`envs.household`).
+
+Measured (``python -m benchmarks.bench_household``): 0.7% positive off-diagonal labels under random
+primitives; 22,000-24,000 steps/s per core; the scripted policy reaches the diamond on 50/50 unseen
+seeds in 28 steps; random primitives never do in 300 steps (27% of the stages on average).
 """
 from __future__ import annotations
 

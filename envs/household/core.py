@@ -76,8 +76,10 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
         self._global_graph.flags.writeable = False
         self._state = [f.low for f in layout.factors]
         self._steps = 0
-        self._reached = [False] * len(self.stages)
+        self._reached: list[bool] = []
+        self._pending: list[int] = []
         self._reached_names: tuple[str, ...] = ()
+        self._set_reached([False] * len(self.stages))
 
     # ------------------------------------------------------------------ task hooks
 
@@ -97,8 +99,7 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
         super().reset(seed=seed)
         self._state = self._lay_out(self.np_random)
         self._steps = 0
-        self._reached = [False] * len(self.stages)
-        self._reached_names = ()
+        self._set_reached([False] * len(self.stages))
         self._update_stages(self._state)
         return self._observation(), {"stages": self._reached_names, "num_stages": len(self._reached_names)}
 
@@ -139,8 +140,7 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
     def restore(self, snapshot: Snapshot) -> np.ndarray:
         """Return to ``snapshot`` and give its observation."""
         self._state, self._steps = list(snapshot.state), snapshot.steps
-        self._reached = list(snapshot.reached)
-        self._reached_names = tuple(s.name for s, r in zip(self.stages, self._reached) if r)
+        self._set_reached(list(snapshot.reached))
         return self._observation()
 
     # ------------------------------------------------------------------ layout and spec
@@ -208,13 +208,15 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
 
     def _update_stages(self, state: list[int]) -> bool:
         """Mark the stages reached in ``state``; whether the last one (success) holds now."""
-        changed = False
-        for k, stage in enumerate(self.stages):
-            if not self._reached[k] and stage.reached(state):
-                self._reached[k] = changed = True
-        if changed:
-            self._reached_names = tuple(s.name for s, r in zip(self.stages, self._reached) if r)
-        return self.stages[-1].reached(state)
+        newly = [k for k in self._pending if self.stages[k].reached(state)]
+        if newly:
+            self._set_reached([r or k in newly for k, r in enumerate(self._reached)])
+        return self._reached[-1] and self.stages[-1].reached(state)
+
+    def _set_reached(self, reached: list[bool]) -> None:
+        self._reached = reached
+        self._pending = [k for k, r in enumerate(reached) if not r]
+        self._reached_names = tuple(s.name for s, r in zip(self.stages, reached) if r)
 
 
 _ARROWS = ">v<^"

@@ -13,8 +13,10 @@ reads it, nothing here dirties it). Success (reward 1, episode ends): ``printer.
 
 Stages: pick printer, printer on table, turn on printer, install printer.
 
-Label sparsity (random-primitive policy, 20,000 steps, ``python -m benchmarks.bench_household``):
-see :mod:`envs.household` for the figures of every task.
+Measured (``python -m benchmarks.bench_household``, table in :mod:`envs.household`): 4.9% positive
+off-diagonal labels under random primitives (12 factors: denser than the larger tasks);
+50,000-53,000 steps/s per core; the scripted policy succeeds on 50/50 unseen seeds in 6 steps, the
+random one in 99% of episodes.
 """
 from __future__ import annotations
 

@@ -22,8 +22,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-MAX_CACHE = 200_000
-"""Entries kept per rule before its cache starts over (bounds memory, not correctness)."""
+MAX_CACHE_ENTRIES = 250_000
+"""Cached rule inputs an engine keeps (about 40 MB) before its caches start over; checked every
+``CACHE_CHECK_STEPS`` steps. Bounds memory, not correctness."""
+CACHE_CHECK_STEPS = 4096
 
 
 @dataclass(frozen=True)
@@ -57,8 +59,6 @@ class _CompiledRule:
         key = self.get(state)
         hit = self.cache.get(key)
         if hit is None:
-            if len(self.cache) >= MAX_CACHE:
-                self.cache.clear()
             hit = self.cache[key] = self._derive(key)
         return hit
 
@@ -67,22 +67,30 @@ class _CompiledRule:
         key = self.get(state)
         value = self.values.get(key)
         if value is None:
-            if len(self.values) >= MAX_CACHE:
-                self.values.clear()
             value = self.values[key] = self.fn(*key)
         return value
 
+    def cached(self) -> int:
+        return len(self.cache) + len(self.values)
+
+    def forget(self) -> None:
+        self.cache.clear()
+        self.values.clear()
+
     def _derive(self, key: tuple[int, ...]) -> tuple[int, tuple[int, ...]]:
-        value = self.fn(*key)
+        fn, domains = self.fn, self.domains
+        value = fn(*key)
         parents = []
+        alt = list(key)
         for p in range(1, len(key)):
-            alt = list(key)
-            for v in self.domains[p]:
-                if v != key[p]:
+            current = key[p]
+            for v in domains[p]:
+                if v != current:
                     alt[p] = v
-                    if self.fn(*alt) != value:
+                    if fn(*alt) != value:
                         parents.append(self.columns[p])
                         break
+            alt[p] = current
         return value, tuple(parents)
 
 
@@ -96,6 +104,8 @@ class RuleEngine:
         self.updates = tuple(_CompiledRule(r, domains, d + 1) for r in updates)
         self.effects = tuple(tuple(_CompiledRule(r, domains, d + 1) for r in rules) for rules in effects)
         self.writable = self._writable()
+        self._rules = (*self.updates, *(r for rules in self.effects for r in rules))
+        self._steps = 0
         self.eye = np.zeros((d, d + 1), dtype=np.uint8)
         self.eye[np.arange(d), np.arange(d)] = 1
 
@@ -121,6 +131,10 @@ class RuleEngine:
         The action is a parent of factor ``j`` when another action gives ``j`` another value: one
         that leaves ``j`` alone (when the taken one changed it) or one whose rule for ``j`` differs.
         """
+        self._steps += 1
+        if self._steps % CACHE_CHECK_STEPS == 0 and sum(r.cached() for r in self._rules) > MAX_CACHE_ENTRIES:
+            for rule in self._rules:
+                rule.forget()
         nxt = list(state)
         edges: list[int] = []
         for rule in self.updates:
@@ -136,7 +150,10 @@ class RuleEngine:
                 edges.append(j * width + width - 1)
                 continue
             for rule in others[action]:
-                if rule.value(state) != value:
+                alternative = rule.values.get(rule.get(state))
+                if alternative is None:
+                    alternative = rule.value(state)
+                if alternative != value:
                     edges.append(j * width + width - 1)
                     break
         return nxt, edges
@@ -152,7 +169,7 @@ class RuleEngine:
         """The union of every rule's reads (and the action for every factor an action writes): each
         is a parent in some state, so this is the union of the local graphs over all states."""
         g = self.eye.copy()
-        for rule in (*self.updates, *(r for rules in self.effects for r in rules)):
+        for rule in self._rules:
             g.put(list(rule.columns), 1)
         width = self.num_factors + 1
         g.put([j * width + width - 1 for j, _, _ in self.writable], 1)

@@ -15,6 +15,10 @@ Tasks (``task``): ``thaw-fish``, ``thaw-olive``, ``thaw-date`` (chapter 6's thre
 that food's ``frozen`` is 0; ``thaw-all`` (Mini-BEHAVIOR's original, all three thawed).
 Stages: open fridge, pick <food>, <food> in sink, turn on sink, thaw <food> (for every food of the
 task; the last stage of ``thaw-all`` is all three thawed).
+
+Measured (``python -m benchmarks.bench_household``, table in :mod:`envs.household`): 1.8% positive
+off-diagonal labels under random primitives (chapter 5: at most 3%); 22,000-30,000 steps/s per
+core; the scripted policy succeeds on 50/50 unseen seeds (12 steps for one food, 20 for all).
 """
 from __future__ import annotations
 
