@@ -46,6 +46,7 @@ RAG = ObjectSpec("rag", movable=True, states=(("soak", LEVEL_MAX + 1), ("dirty",
 TASKS = ("soak-rag", "clean-car", "clean-rag")
 STAGES_PER_TASK = {"soak-rag": 3, "clean-car": 4, "clean-rag": 6}
 MIN_ROOM_SIZE = 7
+"""The smallest room where the sink and the bucket fit wherever the car is."""
 
 
 class CleaningCarEnv(GridTaskEnv):

@@ -169,16 +169,31 @@ class Placer:
         self.covered: set[tuple[int, int]] = set()
 
     def furniture(self, width: int, height: int) -> tuple[int, int]:
-        """A corner whose footprint covers no cell taken so far (the footprint is then taken)."""
+        """A corner whose footprint covers no cell taken so far (the footprint is then taken): a
+        few random draws, then a uniform choice among every corner that fits."""
         r = self.room_size
-        for _ in range(10_000):
-            x = int(self.rng.integers(1, r - width))
-            y = int(self.rng.integers(1, r - height))
-            cells = {(x + i, y + j) for i in range(width) for j in range(height)}
-            if not cells & self.covered:
-                self.covered |= cells
-                return x, y
-        raise RuntimeError(f"no room for a {width}x{height} piece in a {r}x{r} room")
+        for _ in range(100):
+            corner = int(self.rng.integers(1, r - width)), int(self.rng.integers(1, r - height))
+            if self._take(corner, width, height):
+                return corner
+        fits = [(x, y) for x in range(1, r - width) for y in range(1, r - height)
+                if not self._cells((x, y), width, height) & self.covered]
+        if not fits:
+            raise RuntimeError(f"no room for a {width}x{height} piece in a {r}x{r} room")
+        corner = fits[int(self.rng.integers(len(fits)))]
+        self._take(corner, width, height)
+        return corner
+
+    @staticmethod
+    def _cells(corner: tuple[int, int], width: int, height: int) -> set[tuple[int, int]]:
+        return {(corner[0] + i, corner[1] + j) for i in range(width) for j in range(height)}
+
+    def _take(self, corner: tuple[int, int], width: int, height: int) -> bool:
+        cells = self._cells(corner, width, height)
+        if cells & self.covered:
+            return False
+        self.covered |= cells
+        return True
 
     def free_cell(self) -> tuple[int, int]:
         """A floor cell outside every footprint taken (not taken itself: items may share cells)."""

@@ -20,8 +20,6 @@ random one in 99% of episodes.
 """
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from envs.household.core import GridTaskEnv, Stage
@@ -61,9 +59,6 @@ class InstallingPrinterEnv(GridTaskEnv):
         state[lay["agent.dir"]] = int(rng.integers(4))
         state[lay["table.clean"]] = 1
         return state
-
-    def config(self) -> dict[str, Any]:
-        return {"room_size": self.layout.room_size, "episode_length": self.episode_length}
 
 
 def _updates(lay: Layout) -> tuple[Rule, ...]:

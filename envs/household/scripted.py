@@ -143,10 +143,12 @@ class CleaningCarPolicy(ScriptedPolicy):
         return self.apply(s, "pick", "rag")
 
 
-def scripted_policy(env: GridTaskEnv) -> ScriptedPolicy:
-    """The scripted policy of ``env``'s task (``env`` unwrapped)."""
+def scripted_policy(env: gym.Env) -> ScriptedPolicy:
+    """The scripted policy of a household task (wrapped or not); 2D Minecraft's is
+    :class:`envs.minecraft2d.Minecraft2DPolicy`."""
+    env = env.unwrapped
     for env_type, policy in ((InstallingPrinterEnv, InstallingPrinterPolicy), (ThawingEnv, ThawingPolicy),
                              (CleaningCarEnv, CleaningCarPolicy)):
         if isinstance(env, env_type):
             return policy(env)
-    raise TypeError(f"no scripted policy for {type(env).__name__}")
+    raise TypeError(f"no scripted household policy for {type(env).__name__}")

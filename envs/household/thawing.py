@@ -36,7 +36,8 @@ FOODS = ("fish", "olive", "date")
 FRIDGE = ObjectSpec("fridge", width=2, height=2, states=(("open", 2),))
 SINK = ObjectSpec("sink", width=2, height=2, states=(("on", 2),))
 TASKS = ("thaw-fish", "thaw-olive", "thaw-date", "thaw-all")
-MIN_ROOM_SIZE = 6
+MIN_ROOM_SIZE = 7
+"""The smallest room where the sink fits wherever the fridge is."""
 
 
 class ThawingEnv(GridTaskEnv):
