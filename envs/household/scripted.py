@@ -125,22 +125,20 @@ class CleaningCarPolicy(ScriptedPolicy):
         if s["rag.soak"] < LEVEL_MAX:
             if not s["sink.on"] and self.lies_in(s, "rag", "sink"):
                 return self.apply(s, "toggle", "sink")
-            return self.bring_rag(s, "sink")
+            return self.bring(s, "rag", "sink")
         if s["car.stained"]:
-            return self.bring_rag(s, "car")
+            return self.bring(s, "rag", "car")
         if not s["bucket.soaped"]:
-            if s["soap.held"]:
-                return self.apply(s, "place", "soap", at="bucket")
-            return self.apply(s, "pick", "soap")
-        return self.bring_rag(s, "bucket")
+            return self.bring(s, "soap", "bucket")
+        return self.bring(s, "rag", "bucket")
 
-    def bring_rag(self, s: dict[str, int], to: str) -> int:
-        """Carry the rag to ``to`` and leave it there (wait while it lies there)."""
-        if s["rag.held"]:
-            return self.apply(s, "place", "rag", at=to)
-        if self.lies_in(s, "rag", to):
+    def bring(self, s: dict[str, int], item: str, to: str) -> int:
+        """Carry ``item`` to ``to`` and leave it there (wait while it lies there)."""
+        if s[f"{item}.held"]:
+            return self.apply(s, "place", item, at=to)
+        if self.lies_in(s, item, to):
             return self.wait(to)
-        return self.apply(s, "pick", "rag")
+        return self.apply(s, "pick", item)
 
 
 def scripted_policy(env: gym.Env) -> ScriptedPolicy:
