@@ -13,7 +13,7 @@ semantic stages reached (chapter 5's learning curves count them).
 
 Measured (``python -m benchmarks.bench_household``: 50,000 random-primitive steps per env, steps/s
 per CPU second of one core, best of three, on this 2-core AMD EPYC machine shared with other jobs,
-so two runs are given; labels+: positive off-diagonal labels, action column included; scripted
+so the range of three runs is given; labels+: positive off-diagonal labels, action column included; scripted
 policy over 50 unseen seeds):
 
 ============================  ====  ===  ==============  =======  ===============  ==============
@@ -23,7 +23,7 @@ installing-printer            12    5    50,000-53,000   4.9%     0.99          
 thawing thaw-fish             21    14   28,000-30,000   1.8%     0.49             1.00, 12 steps
 thawing thaw-all              21    14   22,000-30,000   1.8%     0.14             1.00, 20 steps
 cleaning-car clean-rag (100)  20    10   29,000-35,000   1.9%     0.00             1.00, 28 steps
-cleaning-car clean-rag (300)  20    10   28,000-40,000   2.0%     0.14             1.00, 28 steps
+cleaning-car clean-rag (300)  20    10   26,000-40,000   2.0%     0.14             1.00, 28 steps
 minecraft2d diamond           24    15   22,000-24,000   0.7%     0.00             1.00, 28 steps
 ============================  ====  ===  ==============  =======  ===============  ==============
 

@@ -22,7 +22,7 @@ Tasks (``task``), each a prerequisite of the next: ``soak-rag`` (``rag.soak`` 5)
 soak rag, then clean car, then soap in bucket, clean rag (as far as the task goes).
 
 Measured (``python -m benchmarks.bench_household``, table in :mod:`envs.household`): 1.9-2.0%
-positive off-diagonal labels under random primitives (chapter 5: at most 3%); 28,000-40,000
+positive off-diagonal labels under random primitives (chapter 5: at most 3%); 26,000-40,000
 steps/s per core; the scripted policy succeeds on 50/50 unseen seeds in 28 steps (``clean-rag``),
 random primitives in 0% of 100-step and 14% of 300-step episodes.
 """
