@@ -11,10 +11,10 @@ Every factor is categorical; the action space is Discrete over (primitive, objec
 reward is +1 on success, which terminates the episode; ``info`` carries the true local graph and the
 semantic stages reached (chapter 5's learning curves count them).
 
-Measured (``python -m benchmarks.bench_household``: 50,000 random-primitive steps per env, steps/s
+Measured (``python -m benchmarks.bench_household``: 50,000 random-primitive steps per env; steps/s
 per CPU second of one core, best of three, on this 2-core AMD EPYC machine shared with other jobs,
-so the range of three runs is given; labels+: positive off-diagonal labels, action column included; scripted
-policy over 50 unseen seeds):
+the range over three invocations; labels+: positive off-diagonal labels, action column included;
+scripted policy over 50 unseen seeds):
 
 ============================  ====  ===  ==============  =======  ===============  ==============
 environment                   d_S   |A|  steps/s/core    labels+  random success   scripted
