@@ -22,8 +22,7 @@ import docker
 import docker.errors
 from docker.models.containers import Container
 
-from services.ops.control import check_scalable
-from services.ops.target import OpsError
+from services.ops.target import OpsError, check_scalable
 
 PROJECT = "com.docker.compose.project"
 SERVICE = "com.docker.compose.service"

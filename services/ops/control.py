@@ -23,24 +23,13 @@ from proto.codec import encode
 from proto.messages import Control
 from services.bus.base import Transport
 from services.ops.observe import Instance, RunObserver
-from services.ops.target import (EXIT_NOT_CONFIRMED, OpsError, Target, add_target_arguments, open_bus,
-                                 resolve_target)
+from services.ops.target import (EXIT_NOT_CONFIRMED, OpsError, Target, add_target_arguments, check_scalable,
+                                 open_bus, resolve_target)
 
-SCALABLE = ("env-worker",)
-"""The one service that scales: the learner and the evaluator own state (checkpoints, replay)."""
 SETTLE_S = 3.0
 """How long a new watcher may take to report the tokens alive now (only a loaded machine needs long)."""
 QUERY_S = 5.0
 """Limit of a liveliness query; it returns as soon as the router has answered, this only bounds a stall."""
-
-
-def check_scalable(service: str, count: int) -> None:
-    """``OpsError`` unless ``service`` may be scaled to ``count``."""
-    if service not in SCALABLE:
-        raise OpsError(f"only {', '.join(SCALABLE)} can be scaled, not {service!r} "
-                       f"(the learner and the evaluator own state: checkpoints, replay)")
-    if count < 0:
-        raise OpsError(f"cannot scale {service} to {count}")
 
 
 def send(bus: Transport, run_id: str, to: str, command: str, argument: str = "") -> None:

@@ -25,6 +25,10 @@ EXIT_NOT_CONFIRMED = 1
 """Exit status of a command that was sent but whose effect was not seen in time."""
 
 
+SCALABLE = ("env-worker",)
+"""Services an operator may scale; the others own state (checkpoints, replay)."""
+
+
 class OpsError(Exception):
     """A command that cannot go on: the message is for the operator, ``exit_code`` for the shell."""
 
@@ -99,3 +103,12 @@ def open_bus(target: Target) -> ZenohTransport:
     except zenoh.ZError as exc:
         reason = str(exc).split("  at ")[0].strip()  # zenoh appends the Rust source location
         raise OpsError(f"could not reach the Zenoh router at {target.connect} (is the stack running?): {reason}") from None
+
+
+def check_scalable(service: str, count: int) -> None:
+    """``OpsError`` unless ``service`` may be scaled to ``count``."""
+    if service not in SCALABLE:
+        raise OpsError(f"only {', '.join(SCALABLE)} can be scaled, not {service!r} "
+                       f"(the learner and the evaluator own state: checkpoints, replay)")
+    if count < 0:
+        raise OpsError(f"cannot scale {service} to {count}")
