@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from services.supervisor.config import RunConfig
+from services.runtime.config import build_config
 from services.supervisor.supervisor import Supervisor
 
 COLLECTORS = {"random": dict(collector="random"),
@@ -36,11 +37,12 @@ RUN_KEYS = ("collector", "seed", "env_steps", "updates", "graph_env_steps", "gra
 
 def run_one(name: str, seed: int, args: argparse.Namespace, root: Path) -> dict:
     """One local-stack run; its summary.json reduced to what the table needs."""
-    cfg = RunConfig(graph=args.graph, num_objects=args.num_objects, seed=seed, max_env_steps=args.max_env_steps,
-                    updates_per_env_step=args.updates_per_env_step, steps_per_second=args.steps_per_second,
-                    max_seconds=args.max_seconds, catch_up_timeout_s=args.catch_up_timeout_s,
-                    run_dir=str(root / f"{name}-s{seed}"), router_port=0, metrics_base_port=0, dashboard_port=0,
-                    progress=args.progress, evaluate=False, **COLLECTORS[name])  # graph scores only
+    cfg = build_config(RunConfig, graph=args.graph, num_objects=args.num_objects, seed=seed,
+                       max_env_steps=args.max_env_steps, learner_updates_per_env_step=args.updates_per_env_step,
+                       worker_max_steps_per_second=args.steps_per_second, max_seconds=args.max_seconds,
+                       catch_up_timeout_s=args.catch_up_timeout_s, run_dir=str(root / f"{name}-s{seed}"),
+                       router_port=0, metrics_base_port=0, dashboard_port=0, progress=args.progress,
+                       evaluate=False, **COLLECTORS[name])  # graph scores only
     summary = Supervisor(cfg).run()
     return {"collector": name, "run_dir": cfg.run_dir, **{k: summary.get(k) for k in RUN_KEYS if k != "collector"}}
 

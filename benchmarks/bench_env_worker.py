@@ -20,6 +20,7 @@ from pathlib import Path
 from proto import topics
 from proto.codec import decode
 from proto.messages import ServiceStats
+from services.runtime.config import build_config
 from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from services.env_worker.config import EnvWorkerConfig
@@ -31,7 +32,7 @@ from services.supervisor.processes import ManagedProcess, stop_all
 def raw_rate(env_name: str, seconds: float, robosuite_controller: bool = False) -> tuple[float, float]:
     """Steps per second of wall time and per second of this process's CPU time (the latter does not
     drop when other processes share the cores)."""
-    core = EnvWorkerCore(EnvWorkerConfig(env=env_name))
+    core = EnvWorkerCore(build_config(EnvWorkerConfig, env=env_name))
     env, policy, obs = core.env, core.policy, core.observation
     if robosuite_controller:
         env.unwrapped.scene.robosuite_controller = True
@@ -54,7 +55,7 @@ def worker_rate(env_name: str, workers: int, seconds: float, batch_steps: int) -
     bus.subscribe(topics.stats("bench", "env-worker"), lambda k, p: beats.setdefault(k, []).append(
         (time.monotonic(), decode(p, ServiceStats).values["env_steps"])))
     run_dir = Path(tempfile.mkdtemp(prefix="causeway-bench-worker-"))
-    procs = [ManagedProcess(f"env-worker-{i}", "services.env_worker", to_environ(EnvWorkerConfig(
+    procs = [ManagedProcess(f"env-worker-{i}", "services.env_worker", to_environ(build_config(EnvWorkerConfig, 
         run_id="bench", zenoh_connect=connect, run_dir=str(run_dir), instance=str(i), worker_index=i,
         env=env_name, batch_steps=batch_steps)), run_dir / f"worker-{i}.log") for i in range(workers)]
     for p in procs:

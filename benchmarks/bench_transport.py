@@ -20,9 +20,10 @@ import time
 from proto import topics
 from proto.codec import decode
 from proto.messages import ServiceStats
+from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
 
-RUN = dict(graph="full", num_objects=10, steps_per_second=0.0, progress=False, metrics_base_port=0)
+RUN = dict(graph="full", num_objects=10, worker_max_steps_per_second=0.0, progress=False, metrics_base_port=0)
 LEARNER = {"warmup_steps": 10**12, "replay_capacity": 100_000}
 
 
@@ -50,7 +51,7 @@ class IngestCounter:
 
 def in_memory(seconds: float, workers: int) -> float:
     from services.supervisor.inprocess import InProcessStack
-    cfg = RunConfig(**RUN, workers=workers, run_dir=tempfile.mkdtemp(prefix="causeway-bench-mem-"), run_id="bench-mem")
+    cfg = build_config(RunConfig, **RUN, workers=workers, run_dir=tempfile.mkdtemp(prefix="causeway-bench-mem-"), run_id="bench-mem")
     stack = InProcessStack(cfg, services=("dynamics-learner",), config_overrides={"dynamics-learner": LEARNER})
     counter = IngestCounter()
     stack.transport().subscribe(topics.stats(stack.cfg.run_id, "dynamics-learner"), counter)
@@ -63,8 +64,9 @@ def in_memory(seconds: float, workers: int) -> float:
 
 def over_zenoh(seconds: float, workers: int) -> float:
     from services.bus.zenoh_transport import ZenohTransport
-    from services.supervisor.supervisor import MODULES, Supervisor, service_configs
-    cfg = RunConfig(**RUN, workers=workers, router_port=0, run_dir=tempfile.mkdtemp(prefix="causeway-bench-zenoh-"),
+    from services.supervisor.supervisor import Supervisor
+    from services.supervisor.wiring import MODULES, service_configs
+    cfg = build_config(RunConfig, **RUN, workers=workers, router_port=0, run_dir=tempfile.mkdtemp(prefix="causeway-bench-zenoh-"),
                     run_id="bench-zenoh", dashboard_port=0)
     sup = Supervisor(cfg)
     sup.run_dir.mkdir(parents=True, exist_ok=True)

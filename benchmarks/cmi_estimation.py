@@ -35,7 +35,7 @@ from benchmarks.manipulation_offline import collect_shard, load_shards, parse_sh
 from causal.cdl import CDLConfig
 from causal.graph_metrics import score_graph
 from envs.manipulation_truth import global_graph
-from services.supervisor.evaluation import load_cdl
+from services.supervisor.evaluation import load_model
 
 WEAK = 0.05
 """Nats: true edges whose whole-shard CMI is below this are the weak ones the noise figure is about."""
@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     started = time.perf_counter()
     args.cache.mkdir(parents=True, exist_ok=True)
     data = load_shards([collect_shard(args.cache, steps, shard_seed)])
-    model, truth = load_cdl(args.run_dir), global_graph()
+    model, truth = load_model(args.run_dir), global_graph()
     cmis = estimates(model, data, args.samples, args.repeats, args.seed)
     rows, spread = summarise(cmis, truth), noise(cmis, truth, args.samples)
     print(f"{args.run_dir}: model at its last checkpoint, held-out shard {steps:,}:{shard_seed} "

@@ -36,7 +36,7 @@ from envs.manipulation import ManipulationEnv
 from envs.manipulation_layout import EEF, GRP, MOV, RAND, UNM
 from envs.manipulation_truth import ACTION
 from envs.skills import SkillPolicy
-from services.supervisor.evaluation import load_cdl
+from services.supervisor.evaluation import load_model
 
 ROWS = np.r_[EEF, GRP, MOV]
 SOURCES = {"unm": np.r_[UNM][:2], "rand": np.r_[RAND][:2]}
@@ -106,10 +106,11 @@ def contact_cmi(model: CDLModel, data: Collected) -> dict[str, tuple[float, floa
 
 def run_chooser(run_dir: Path):
     """The run's checkpointed policy over skills, sampling options as its env-workers did."""
-    from services.supervisor.config import RunConfig
-    from services.supervisor.supervisor import load_policy, service_configs
+    from services.supervisor.analysis import load_policy
+    from services.supervisor.config import load_run_config
+    from services.supervisor.wiring import service_configs
 
-    cfg = RunConfig(**json.loads((run_dir / "config.json").read_text()))
+    cfg = load_run_config(run_dir)
     policy_cfg = service_configs(cfg, "")["policy-learner"]
     chooser = load_policy(run_dir, policy_cfg, cfg, deterministic=False) if policy_cfg.skills else None
     if chooser is None:
@@ -136,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
         label = name if name == "holding mov" else f"touching {name}"
         print(f"  {label:<14}: {100 * fraction:5.1f}% of steps")
     if args.run_dir is not None:
-        reported, model = reported_cmi(args.run_dir), load_cdl(args.run_dir)
+        reported, model = reported_cmi(args.run_dir), load_model(args.run_dir)
         for name, (overall, local) in contact_cmi(model, data).items():
             print(f"  CMI {name} -> robot/mov (max, nats; threshold 0.02): evaluator {reported[name]:.4f}; "
                   f"checkpoint on these steps {overall:.4f}, on the steps touching {name} {local:.4f}")

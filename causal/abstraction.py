@@ -27,6 +27,14 @@ class Abstraction:
                 for cls in ("controllable", "action_relevant", "action_irrelevant")}
 
 
+def with_self_edges(adjacency: np.ndarray) -> np.ndarray:
+    """Assumption 4 of ch. 3: every factor depends on itself, whatever the estimate says."""
+    out = np.asarray(adjacency, dtype=bool).copy()
+    n = out.shape[0]
+    out[np.arange(n), np.arange(n)] = True
+    return out
+
+
 def _reach(start: set[int], step: dict[int, set[int]]) -> set[int]:
     seen, frontier = set(start), list(start)
     while frontier:

@@ -20,48 +20,54 @@ import json
 import math
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 from torch import nn
 
 from causal.factored import FactorCodec, FactorLayout
+from causal.method import layout_from_config
+from causal.method import model_config_json as method_config_json
+from proto.settings import doc
 
 LOG_2PI = math.log(2 * math.pi)
 
 
 @dataclass(frozen=True)
 class CDLConfig:
-    """Architecture and optimisation of the CDL dynamics model."""
+    """CDL (ch. 3): architecture and optimisation of the masked dynamics model, and its CMI edge threshold."""
 
-    feature_hidden: int = 32
-    """Hidden width of each per-(output, input) feature network (reference: 64; see README, Deviations)."""
-    feature_dim: int = 32
-    """Size of every feature vector phi^i (all features share one size, as the chapter requires)."""
-    predictor_hidden: int = 64
-    """Hidden width of each per-output predictive head (reference: 64 -> 64 -> 64 -> out)."""
-    lr: float = 3e-3
-    """Adam learning rate. The reference uses 1e-4 over 500k updates; we train ~40x fewer updates
-    on these machines, so the default is larger (see README, 'Deviations')."""
-    lr_decay_updates: int = 0
-    """Cosine decay of the learning rate from ``lr`` to ``lr_final`` over this many updates, constant
-    after (0: constant ``lr``). Not in the chapter (whose reference trains at a constant 1e-4 for 500k
-    updates): it lets a short run start at our larger rate and end near the reference's."""
-    lr_final: float = 1e-4
-    """Learning rate at the end of the decay (the reference's constant rate)."""
-    batch_size: int = 64
-    causal_every: int = 10
-    """Include the causal-parents likelihood term once every this many updates (ch. 3.3.2)."""
-    log_std_min: float = -6.0
-    log_std_max: float = 2.0
-    grad_clip: float = 10.0
-    cmi_threshold: float = 0.02
-    """Edge if CMI >= this many nats (epsilon_G)."""
+    feature_hidden: int = doc(32, "hidden width of each per-(output, input) feature network (reference: 64; "
+                                  "see docs/deviations.md)")
+    feature_dim: int = doc(32, "size of every feature vector phi^i (all features share one size, as the "
+                               "chapter requires)")
+    predictor_hidden: int = doc(64, "hidden width of each per-output predictive head (reference: 64 -> 64 -> 64)")
+    lr: float = doc(3e-3, "Adam learning rate (the reference's 1e-4 over 500k updates is ~40x more updates "
+                          "than a run here makes; see docs/deviations.md)")
+    lr_decay_updates: int = doc(0, "cosine decay of the learning rate from lr to lr_final over this many "
+                                   "updates, constant after (0: constant lr; not in the chapter)")
+    lr_final: float = doc(1e-4, "learning rate at the end of the decay (the reference's constant rate)")
+    batch_size: int = doc(64, "transitions per update")
+    causal_every: int = doc(10, "include the causal-parents likelihood term once every this many updates "
+                                "(ch. 3.3.2)")
+    log_std_min: float = doc(-6.0, "lower clip of a continuous head's log standard deviation")
+    log_std_max: float = doc(2.0, "upper clip of a continuous head's log standard deviation")
+    grad_clip: float = doc(10.0, "gradient norm clip")
+    cmi_threshold: float = doc(0.02, "CMI edge threshold epsilon_G, nats: edge if CMI >= this (also the "
+                                     "point-wise CMI threshold of local graphs)")
 
     def __post_init__(self) -> None:
-        if self.lr <= 0 or self.lr_final <= 0:
-            raise ValueError(f"learning rates must be positive (lr={self.lr}, lr_final={self.lr_final})")
+        for name in ("lr", "lr_final", "grad_clip"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {value}")
+        for name in ("feature_hidden", "feature_dim", "predictor_hidden", "batch_size", "causal_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.lr_decay_updates < 0:
             raise ValueError(f"lr_decay_updates must be >= 0, got {self.lr_decay_updates}")
+        if not (math.isfinite(self.cmi_threshold) and self.cmi_threshold >= 0):
+            raise ValueError(f"cmi_threshold must be a finite number >= 0, got {self.cmi_threshold}")
+        if not self.log_std_min < self.log_std_max:
+            raise ValueError(f"log_std_min ({self.log_std_min}) must be below log_std_max ({self.log_std_max})")
 
     def lr_at(self, updates: int) -> float:
         """The learning rate of update number ``updates`` (0-based) under the cosine schedule."""
@@ -258,9 +264,9 @@ class CDLModel(nn.Module):
         return mask[:, self.input_order]
 
     def to_graph_order(self, matrix: torch.Tensor) -> torch.Tensor:
-        """A [J, I] matrix in the module's input order -> graph column order."""
+        """A [..., J, I] matrix in the module's input order -> graph column order."""
         out = torch.empty_like(matrix)
-        out[:, self.input_order] = matrix
+        out[..., self.input_order] = matrix
         return out
 
     def predict(self, aggregated: torch.Tensor) -> torch.Tensor:
@@ -320,6 +326,14 @@ class CDLModel(nn.Module):
         owner = torch.repeat_interleave(torch.arange(self.num_inputs), torch.tensor(slots))
         return torch.zeros(self.num_inputs, dtype=torch.long).index_add_(0, owner, (~same).long()) == 0
 
+    def drop_one_gain(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
+        """NLL(input i dropped) - NLL(full) per output j, input i and sample: ``[J, I, B]`` nats, in
+        the module's input order; one feature computation for every i (the top-2 max)."""
+        first, runner_up, is_max = max_and_runner_up(self.features(state, action))
+        full_nll = self.nll(self.predict(first), state, next_state)
+        dropped_nll = self.nll(self.predict(torch.where(is_max, runner_up, first)), state, next_state)
+        return dropped_nll - full_nll
+
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
             chunk: int = 256, zero_constant_inputs: bool = True) -> torch.Tensor:
@@ -335,42 +349,36 @@ class CDLModel(nn.Module):
         total = torch.zeros(self.num_outputs, self.num_inputs)
         for start in range(0, state.shape[0], chunk):
             s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
-            first, runner_up, is_max = max_and_runner_up(self.features(s, a))
-            full_nll = self.nll(self.predict(first), s, n)
-            dropped_nll = self.nll(self.predict(torch.where(is_max, runner_up, first)), s, n)
-            total += (dropped_nll - full_nll).sum(dim=-1)
+            total += self.drop_one_gain(s, a, n).sum(dim=-1)
         cmi = self.to_graph_order(total / max(state.shape[0], 1))
         if zero_constant_inputs and state.shape[0]:
             cmi[:, self.constant_inputs(state, action)] = 0.0
         return cmi
 
+    @torch.no_grad()
+    def pointwise_cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                      chunk: int = 256) -> torch.Tensor:
+        """Point-wise CMI of every transition (the local graph estimate of chapters 5-6, "pCMI"):
+        ``log p(s'_j | s, a) - log p(s'_j | s without i, a)`` per sample, ``[B, J, I]`` nats, graph
+        column order. Its mean over samples is :meth:`cmi` (without the constant-input zeroing)."""
+        out = torch.empty(state.shape[0], self.num_outputs, self.num_inputs)
+        for start in range(0, state.shape[0], chunk):
+            s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
+            out[start : start + chunk] = self.to_graph_order(self.drop_one_gain(s, a, n).permute(2, 0, 1))
+        return out
+
 
 def model_config_json(layout: FactorLayout, cfg: CDLConfig) -> str:
     """Everything needed to rebuild a CDLModel from published weights."""
-    return json.dumps({"model": "cdl", "layout": asdict(layout), "cdl": asdict(cfg)}, sort_keys=True)
+    return method_config_json("cdl", layout, cfg)
+
+
+def model_from_config(data: dict) -> CDLModel:
+    """A CDLModel (untrained) from a parsed :func:`model_config_json`."""
+    if data.get("model") != "cdl":
+        raise ValueError(f"not a CDL model config: {data.get('model')!r}")
+    return CDLModel(layout_from_config(data), CDLConfig(**data["cdl"]))
 
 
 def model_from_config_json(text: str) -> CDLModel:
-    data = json.loads(text)
-    if data.get("model") != "cdl":
-        raise ValueError(f"not a CDL model config: {data.get('model')!r}")
-    layout = FactorLayout(**{k: tuple(v) if isinstance(v, list) else v for k, v in data["layout"].items()})
-    return CDLModel(layout, CDLConfig(**data["cdl"]))
-
-
-def export_tensors(model: nn.Module) -> dict[str, np.ndarray]:
-    """Parameters as numpy arrays for a ``Weights`` message (buffers are rebuilt from the config)."""
-    return {name: p.detach().cpu().numpy().copy() for name, p in model.named_parameters()}
-
-
-def import_tensors(model: nn.Module, tensors: dict[str, np.ndarray]) -> None:
-    """Load parameters published by ``export_tensors``; shapes must match exactly."""
-    params = dict(model.named_parameters())
-    if set(params) != set(tensors):
-        raise ValueError(f"parameter names differ: missing {sorted(set(params) - set(tensors))[:3]}, "
-                         f"unexpected {sorted(set(tensors) - set(params))[:3]}")
-    with torch.no_grad():
-        for name, value in tensors.items():
-            if tuple(value.shape) != tuple(params[name].shape):
-                raise ValueError(f"{name}: shape {value.shape} != {tuple(params[name].shape)}")
-            params[name].copy_(torch.from_numpy(np.ascontiguousarray(value, dtype=np.float32)))
+    return model_from_config(json.loads(text))

@@ -6,16 +6,9 @@ import copy
 import numpy as np
 import torch
 
-from causal.cdl import CDLConfig, CDLModel
+from causal.abstraction import with_self_edges
+from causal.cdl import CDLConfig, CDLModel, model_config_json
 from causal.factored import FactorLayout
-
-
-def with_self_edges(adjacency: np.ndarray) -> np.ndarray:
-    """Assumption 4 of ch. 3: every factor depends on itself, whatever the estimate says."""
-    out = np.asarray(adjacency, dtype=bool).copy()
-    n = out.shape[0]
-    out[np.arange(n), np.arange(n)] = True
-    return out
 
 
 class CDLTrainer:
@@ -57,9 +50,16 @@ class CDLTrainer:
         return stats
 
     @property
+    def batch_size(self) -> int:
+        return self.cfg.batch_size
+
+    @property
     def lr(self) -> float:
         """The learning rate of the next update."""
         return self.cfg.lr_at(self.updates)
+
+    def config_json(self) -> str:
+        return model_config_json(self.model.layout, self.cfg)
 
     def state_dict(self) -> dict:
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),

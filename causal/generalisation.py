@@ -31,7 +31,8 @@ from causal.abstraction import Abstraction, cdl_abstraction
 from causal.baselines import (DenseDynamicsTrainer, ModularModel, MonolithicModel, dense_rollout_step,
                               matched_monolithic, parameter_count)
 from causal.cdl import CDLConfig
-from causal.cdl_trainer import CDLTrainer, with_self_edges
+from causal.abstraction import with_self_edges
+from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
 from causal.graph_metrics import score_graph
 from causal.planning import CEMConfig, CEMPlanner, StepFn, cdl_rollout_step

@@ -26,6 +26,13 @@ from typing import Sequence
 import numpy as np
 
 
+REPORTED_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold_f1",
+                   "identifiable_accuracy", "identifiable_f1", "identifiable_best_threshold_f1",
+                   "with_self_accuracy", "with_self_f1", "with_self_best_threshold_f1")
+"""Scores of a global graph that every report carries where the env has a true graph (the
+evaluator's gauges, ``causeway run --target-metric``)."""
+
+
 def scored_entries(shape: tuple[int, int]) -> np.ndarray:
     """Boolean mask of the entries that are scored (all but the self-edges)."""
     mask = np.ones(shape, dtype=bool)

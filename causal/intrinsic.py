@@ -12,7 +12,9 @@ Rewards live in a small registry (:data:`REWARDS`) so new ones (ELDEN's, an ense
   (Poisson(1) weight per member and transition, fixed when the transition arrives).
 
 The first two share one feature computation: the dense and the causal aggregate are two masks on it.
-A reward's ``source`` says which model it reads: ``cdl`` (the published CDL weights) or ``ensemble``.
+A reward's ``source`` says which model it reads: ``dynamics`` (the run's method's published weights;
+the method lists the rewards its model serves in ``Method.intrinsic``) or ``ensemble`` (a model the
+intrinsic-reward service trains itself, whatever the method).
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import torch
 from torch import nn
 
 from causal.cdl import CDLModel
-from causal.cdl_trainer import with_self_edges
+from causal.abstraction import with_self_edges
 from causal.factored import FactorCodec, FactorLayout
 
 
@@ -62,7 +64,7 @@ class PredDiff:
     """CDL's prediction difference (eq. 3.4), squashed by tanh into (-1, 1)."""
 
     name: ClassVar[str] = "preddiff"
-    source: ClassVar[str] = "cdl"
+    source: ClassVar[str] = "dynamics"
     eta: float = 1.0
 
     def __call__(self, model: CDLModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
@@ -76,7 +78,7 @@ class PredictionError:
     """Curiosity as the causal predictor's NLL of the observed next state, summed over factors."""
 
     name: ClassVar[str] = "curiosity"
-    source: ClassVar[str] = "cdl"
+    source: ClassVar[str] = "dynamics"
     eta: float = 1.0
 
     def __call__(self, model: CDLModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
@@ -160,6 +162,10 @@ class Disagreement:
 REWARDS: dict[str, Callable[..., IntrinsicReward]] = {
     PredDiff.name: PredDiff, PredictionError.name: PredictionError, Disagreement.name: Disagreement}
 """Intrinsic rewards by name; each factory takes ``eta``."""
+
+
+def reward_names() -> tuple[str, ...]:
+    return tuple(REWARDS)
 
 
 def make_reward(name: str, eta: float = 1.0) -> IntrinsicReward:

@@ -173,6 +173,8 @@ class SkillPolicy:
 
     version = 0
     over_skills = True
+    OPTION_NAMES = OPTION_NAMES
+    """The options a policy over these skills picks among (the env registry reads them from here)."""
 
     def __init__(
         self,

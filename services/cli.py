@@ -19,18 +19,24 @@ import logging
 import sys
 from typing import Callable
 
-from services.runtime.config import parse_config
+from services.runtime.config import USAGE_EXIT, parse_config
 
 Command = Callable[[list[str]], int]
 
 
 def _run(argv: list[str]) -> int:
+    """``causeway run``: every flag and file is checked before anything starts (exit 2 with the reason)."""
+    from services.supervisor.analysis import print_summary
     from services.supervisor.config import RunConfig
-    from services.supervisor.supervisor import Supervisor, print_summary
+    from services.supervisor.supervisor import Supervisor
 
-    cfg = parse_config(RunConfig, argv)
+    cfg = parse_config(RunConfig, argv, prog="causeway run")
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
-    supervisor = Supervisor(cfg)
+    try:
+        supervisor = Supervisor(cfg)
+    except ValueError as exc:
+        print(f"causeway run: error: {exc}", file=sys.stderr)
+        return USAGE_EXIT
     print(f"causeway: run {supervisor.cfg.run_id} in {supervisor.run_dir} "
           f"(router {supervisor.connect}, logs in {supervisor.run_dir / 'logs'})", file=sys.stderr)
     if supervisor.dashboard_url:

@@ -235,15 +235,6 @@ def check_command(command: str) -> None:
     check_words(fill_placeholders(command))
 
 
-def _refactor_landed() -> bool:
-    """Whether ``causeway run`` takes the method-prefixed flags (``--method``, ``--cdl-lr``, ...) yet."""
-    try:
-        check_command("causeway run --method cdl --cdl-lr 0.003 --learner-replay-capacity 1000")
-    except Exception:  # noqa: BLE001 - not there yet, or half there: the tests below say which
-        return False
-    return True
-
-
 # ---------------------------------------------------------------------------------------------
 # the tests
 
@@ -255,10 +246,6 @@ def _no_causeway_environment(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.delenv(key)
 
 
-@pytest.mark.xfail(condition=not _refactor_landed(), strict=False, raises=pytest.fail.Exception,
-                   reason="the docs use causeway run's method/service-prefixed flags (--cdl-lr, "
-                          "--learner-replay-capacity, --method, ...), which the CLI refactor of issue 16 "
-                          "introduces; remove this marker once it has landed")
 @pytest.mark.parametrize("quoted", QUOTED, ids=[f"{q.where} {q.text[:60]}" for q in QUOTED])
 def test_quoted_command_parses(quoted: Quoted) -> None:
     try:
@@ -276,8 +263,6 @@ def test_the_docs_quote_the_main_commands() -> None:
 
 
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
-PENDING = {"docs/architecture.md"}
-"""Pages another change is writing: a link to one is fine while it does not exist yet."""
 
 
 def anchors(path: Path) -> set[str]:
@@ -296,8 +281,7 @@ def broken_links(path: Path) -> list[str]:
         file, _, anchor = target.partition("#")
         resolved = (path.parent / file).resolve() if file else path
         if not resolved.exists():
-            if resolved.relative_to(ROOT).as_posix() not in PENDING:
-                broken.append(target)
+            broken.append(target)
         elif anchor and resolved.suffix == ".md" and anchor not in anchors(resolved):
             broken.append(target)
     return broken

@@ -1,1 +1,1 @@
-"""dynamics-learner: trains the CDL causal dynamics model on streamed transitions and publishes weights."""
+"""dynamics-learner: trains the run's method's dynamics model on streamed transitions and publishes weights."""

@@ -1,33 +1,28 @@
-"""dynamics-learner core: replay + CDL trainer + weight export + checkpoints. No bus."""
+"""dynamics-learner core: replay + the method's trainer + weight export + checkpoints. No bus; no
+particular method (the run's comes from the registry)."""
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-
-from causal.cdl import export_tensors, model_config_json
-from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
+from causal.method import export_tensors
+from causal.methods import get_method, method_config
 from causal.replay import ReplayBuffer, heldout_mask
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
-MODEL = "cdl"
-
-
-SCHEDULE_KEYS = ("lr_decay_updates", "lr_final")
-"""CDLConfig fields that a resumed learner may change."""
-
-
 class DynamicsLearnerCore:
-    """Consumes training transitions, trains CDL (eq. 3.3), takes parents from graph reports."""
+    """Consumes training transitions, trains the method's dynamics model (CDL: eq. 3.3), and gives
+    the trainer the newest global graph (CDL: the parents of the causal term)."""
 
     def __init__(self, cfg: DynamicsLearnerConfig, spec: EnvSpec) -> None:
         self.cfg, self.spec = cfg, spec
+        self.method = get_method(cfg.method)
         self.layout = FactorLayout.from_spec(spec)
-        self.trainer = CDLTrainer(self.layout, cfg.cdl(), seed=cfg.seed)
+        self.trainer = self.method.trainer(self.layout, method_config(cfg.models, cfg.method), cfg.seed)
         self.replay = ReplayBuffer(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.version = 0
         self.env_steps = 0
@@ -47,7 +42,7 @@ class DynamicsLearnerCore:
 
     @property
     def ready(self) -> bool:
-        return self.replay.size >= max(self.cfg.warmup_steps, self.cfg.batch_size)
+        return self.replay.size >= max(self.cfg.warmup_steps, self.trainer.batch_size)
 
     @property
     def may_update(self) -> bool:
@@ -58,13 +53,16 @@ class DynamicsLearnerCore:
         return self.ready and (ratio <= 0 or self.trainer.updates < ratio * self.env_steps)
 
     def train_step(self) -> dict[str, float]:
-        stats = self.trainer.update(*self.replay.sample(self.cfg.batch_size))
+        stats = self.trainer.update(*self.replay.sample(self.trainer.batch_size))
         self.last_stats.update(stats)
         return stats
 
     def apply_graph(self, report: GraphReport) -> bool:
-        """Use the evaluator's graph as PA(S^j) for the causal term; stale reports are ignored."""
-        if report.weights_version < self.graph_version or report.adjacency.shape != tuple(self.trainer.parents.shape):
+        """Give the trainer the evaluator's graph (CDL: PA(S^j) for the causal term); stale, misshapen
+        and other methods' reports are ignored."""
+        n = self.spec.num_factors
+        if (report.kind != self.method.name or report.weights_version < self.graph_version
+                or report.adjacency.shape != (n, n + 1)):
             return False
         self.graph_version = report.weights_version
         self.trainer.set_parents(report.adjacency)
@@ -72,19 +70,17 @@ class DynamicsLearnerCore:
 
     def weights(self) -> Weights:
         self.version += 1
-        return Weights(model=MODEL, version=self.version, config_json=model_config_json(self.layout, self.trainer.cfg),
+        return Weights(model=self.method.name, version=self.version, config_json=self.trainer.config_json(),
                        tensors=export_tensors(self.trainer.model), updates=self.trainer.updates,
                        env_steps=self.env_steps)
 
     def fingerprint(self) -> str:
         """What a checkpoint must match to be resumed: the environment and the model's configuration.
 
-        The learning-rate schedule is left out (:data:`SCHEDULE_KEYS`): a run may be resumed with
-        another one (say, to decay a run trained at a constant rate), and checkpoints written before
-        the schedule existed still match."""
-        model = json.loads(model_config_json(self.layout, self.trainer.cfg))
-        for key in SCHEDULE_KEYS:
-            model["cdl"].pop(key)
+        The method's resumable settings are left out (``Method.resumable``; CDL: the learning-rate
+        schedule): a run may be resumed with another one (say, to decay a run trained at a constant
+        rate), and checkpoints written before the schedule existed still match."""
+        model = self.method.fingerprint(self.trainer.config_json())
         return json.dumps({"env": self.spec.env_id, "env_config": json.loads(self.spec.config_json),
                            "model": model}, sort_keys=True)
 

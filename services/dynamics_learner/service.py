@@ -9,7 +9,7 @@ from proto import topics
 from proto.messages import GraphReport, TransitionBatch
 from services.bus.base import Transport
 from services.dynamics_learner.config import DynamicsLearnerConfig
-from services.dynamics_learner.core import MODEL, DynamicsLearnerCore
+from services.dynamics_learner.core import DynamicsLearnerCore
 from services.runtime.shell import Inbox, ServiceShell, service_main
 
 SERVICE = "dynamics-learner"
@@ -19,16 +19,16 @@ log = logging.getLogger(SERVICE)
 class _Metrics:
     def __init__(self, shell: ServiceShell) -> None:
         m = shell.metrics
-        self.updates = m.counter("causeway_dynamics_updates", "CDL gradient updates")
-        self.nll = m.gauge("causeway_dynamics_nll_nats", "Mean NLL per factor of the last update, by eq. 3.3 term", ("term",))
+        self.updates = m.counter("causeway_dynamics_updates", "Dynamics-model gradient updates")
+        self.nll = m.gauge("causeway_dynamics_nll_nats", "Mean NLL per factor of the last update, by loss term (CDL: eq. 3.3)", ("term",))
         self.replay = m.gauge("causeway_replay_transitions", "Transitions in the replay buffer")
         self.env_steps = m.gauge("causeway_learner_env_steps", "Env steps seen by the learner (training + held-out)")
         self.version = m.gauge("causeway_weights_version", "Version of the last published weights")
         self.weights_bytes = m.counter("causeway_weights_bytes_published", "Bytes of weights published")
-        self.update_seconds = m.histogram("causeway_update_seconds", "Duration of one CDL update",
+        self.update_seconds = m.histogram("causeway_update_seconds", "Duration of one dynamics-model update",
                                           (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0))
         self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
-        self.lr = m.gauge("causeway_dynamics_learning_rate", "Adam learning rate of the next CDL update (--lr-decay-updates)")
+        self.lr = m.gauge("causeway_dynamics_learning_rate", "Learning rate of the next dynamics-model update (CDL: --cdl-lr-decay-updates)")
         self.ratio = m.gauge("causeway_dynamics_updates_per_env_step", "Updates per env step ingested so far")
         self.ratio_wait = m.counter("causeway_dynamics_ratio_wait_seconds",
                                     "Seconds the learner waited for env steps at --updates-per-env-step")
@@ -40,8 +40,8 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
     transitions = shell.inbox("transitions", TransitionBatch, maxsize=256)
     graphs = shell.inbox("graph", GraphReport, maxsize=8)
     shell.subscribe(topics.transitions(cfg.run_id), transitions)
-    shell.subscribe(topics.graph(cfg.run_id, MODEL), graphs)
-    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, MODEL))
+    shell.subscribe(topics.graph(cfg.run_id, cfg.method), graphs)
+    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, cfg.method))
     spec = shell.wait_for_spec()
     if spec is None:
         shell.close()
@@ -90,7 +90,8 @@ def _train(core: DynamicsLearnerCore, metrics: _Metrics) -> None:
     metrics.update_seconds.observe(time.perf_counter() - t0)
     metrics.updates.inc()
     for term, value in stats.items():
-        metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
+        if term.startswith("nll_"):
+            metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
 
 
 def _wait_for_transitions(core: DynamicsLearnerCore, transitions: Inbox, shell: ServiceShell, metrics: _Metrics) -> None:

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from envs.registry import EnvOptions, env_names
+from proto.settings import section
 from services.runtime.config import ServiceConfig, doc
 
 
@@ -10,11 +12,8 @@ from services.runtime.config import ServiceConfig, doc
 class EnvWorkerConfig(ServiceConfig):
     """env-worker: steps an environment and publishes TransitionBatches."""
 
-    env: str = doc("chemical", "environment name (envs.make_env)")
-    graph: str = doc("full", "Chemical object graph: collider, chain, full or a path to a DAG JSON file")
-    num_objects: int = doc(10, "Chemical: number of objects")
-    cpt_seed: int = doc(0, "Chemical: seed of the fixed conditional probability tables (same for all workers)")
-    seed: int = doc(0, "run seed: worker i seeds its env and policy with seed + i")
+    env: str = doc("chemical", "environment (envs.registry)", choices=env_names)
+    env_options: EnvOptions = section(EnvOptions, prefix="", help="environment construction options")
     worker_index: int = doc(0, "index i of this worker (seed + i); -1: derive it from the hostname "
                                 "(compose replicas, which share one configuration)")
     batch_steps: int = doc(256, "env steps per published TransitionBatch (64-1024)")
@@ -23,3 +22,12 @@ class EnvWorkerConfig(ServiceConfig):
     local_graphs: bool = doc(False, "attach the simulator's ground-truth local graphs to each batch")
     follow_policy: bool = doc(False, "act with the newest policy weights (weights/policy); random until they arrive")
     policy_poll_s: float = doc(5.0, "follow_policy: also ask for the latest policy this often, so a missed update is caught")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 1 <= self.batch_steps <= 65536:
+            raise ValueError(f"batch_steps must be in [1, 65536], got {self.batch_steps}")
+        if self.max_steps_per_second < 0 or self.max_steps < 0:
+            raise ValueError("max_steps_per_second and max_steps must be >= 0")
+        if self.worker_index < -1:
+            raise ValueError(f"worker_index must be >= 0 (or -1: from the hostname), got {self.worker_index}")

@@ -8,18 +8,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envs import make_env
+from envs.registry import EnvEntry, env_entry
 from proto.messages import EnvSpec, TransitionBatch, Weights
 from services.env_worker.config import EnvWorkerConfig
 
 if TYPE_CHECKING:
-    from services.policy_learner.policy_weights import Agent
-
-
-def env_kwargs(cfg: EnvWorkerConfig) -> dict:
-    if cfg.env in ("chemical", "chemical-match"):
-        return {"graph": cfg.graph, "num_objects": cfg.num_objects, "cpt_seed": cfg.cpt_seed}
-    return {}
+    from causal.rl.policy_weights import Agent
 
 
 class RandomPolicy:
@@ -39,13 +33,14 @@ class RandomPolicy:
         return np.atleast_1d(np.asarray(self.space.sample(), dtype=np.float32))
 
 
-def default_policy(env: str, action_space, seed: int):
-    """The collection policy before (or without) learned weights: uniformly random actions, except on
-    the manipulation scene, where random motor noise never reaches the cube and the chapter follows
-    Nasiriany et al. with skills (reach, grasp, push) picked uniformly with uniform parameters."""
-    if env == "manipulation":
-        from envs.skills import SkillPolicy
-        return SkillPolicy(action_space, seed)
+def default_policy(entry: EnvEntry, action_space, seed: int):
+    """The collection policy before (or without) learned weights: uniformly random actions, except
+    where the env's registry entry asks for its skills picked uniformly (the manipulation scene, where
+    random motor noise never reaches the cube and the chapter follows Nasiriany et al. with skills
+    (reach, grasp, push) picked uniformly with uniform parameters)."""
+    runner = entry.skill_runner()
+    if runner is not None and entry.skill_collection:
+        return runner(action_space, seed)
     return RandomPolicy(action_space, seed)
 
 
@@ -56,8 +51,8 @@ class PolicyActor:
     :class:`~envs.skills.SkillPolicy` runs it; loading newer weights keeps the running skill.
     torch is imported with the first weights, so a worker that never follows a policy starts fast."""
 
-    def __init__(self, obs_dim: int, seed: int, action_space=None) -> None:
-        self.obs_dim, self.seed, self.action_space = obs_dim, seed, action_space
+    def __init__(self, obs_dim: int, seed: int, action_space=None, skill_runner: type | None = None) -> None:
+        self.obs_dim, self.seed, self.action_space, self.skill_runner = obs_dim, seed, action_space, skill_runner
         self.agent: Agent | None = None
         self.skills = None
         self.config_json = ""
@@ -67,7 +62,7 @@ class PolicyActor:
         """Take ``weights`` if newer than the current ones (ValueError if they do not fit this env)."""
         if weights.version <= self.version:
             return False
-        from services.policy_learner.policy_weights import agent_from_config_json, import_policy, policy_options
+        from causal.rl.policy_weights import agent_from_config_json, import_policy, policy_options
 
         agent, skills = self.agent, self.skills
         if weights.config_json != self.config_json:
@@ -80,15 +75,14 @@ class PolicyActor:
     def _skill_runner(self, options: tuple[str, ...]):
         if not options:
             return None
-        from envs.skills import OPTION_NAMES, SkillPolicy
-
-        if self.action_space is None:
+        if self.skill_runner is None:
             raise ValueError("a policy over skills for an env without skills")
-        if options != OPTION_NAMES:
-            raise ValueError(f"a policy over skills {list(options)}; this worker runs {list(OPTION_NAMES)}")
+        if options != self.skill_runner.OPTION_NAMES:
+            raise ValueError(f"a policy over skills {list(options)}; this worker runs "
+                             f"{list(self.skill_runner.OPTION_NAMES)}")
         if self.skills is not None:
             return self.skills
-        return SkillPolicy(self.action_space, self.seed, chooser=self._choose)
+        return self.skill_runner(self.action_space, self.seed, chooser=self._choose)
 
     def _choose(self, observation: np.ndarray) -> int:
         return int(np.asarray(self.agent.act(observation)).reshape(-1)[0])
@@ -127,15 +121,21 @@ class EnvWorkerCore:
         cfg = resolve_worker_index(cfg)
         self.cfg = cfg
         self.worker_id = f"w{cfg.worker_index}"
-        self.env = make_env(cfg.env, **env_kwargs(cfg))
+        self.entry = env_entry(cfg.env)
+        self.env = self.entry.make(**self.entry.kwargs(cfg.env_options))
         self.spec: EnvSpec = self.env.unwrapped.env_spec()
         seed = cfg.seed + cfg.worker_index
-        self.random_policy = default_policy(cfg.env, self.env.action_space, seed)
-        skills = cfg.env == "manipulation"
-        self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space if skills else None)
+        self.random_policy = default_policy(self.entry, self.env.action_space, seed)
+        self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())
         self.observation, _ = self.env.reset(seed=seed)
         self.episode, self.step_in_episode = 0, 0
         self.env_steps, self.seq = 0, 0
+
+    @property
+    def option_names(self) -> tuple[str, ...]:
+        """Names of the env's skill options (what a batch's ``option`` indexes); () without skills."""
+        runner = self.actor.skill_runner
+        return tuple(runner.OPTION_NAMES) if runner is not None else ()
 
     @property
     def policy(self) -> RandomPolicy | PolicyActor:

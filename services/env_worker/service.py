@@ -13,8 +13,7 @@ from proto.messages import Weights
 from services.bus.base import Transport
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
-from services.runtime.config import parse_config
-from services.runtime.shell import Inbox, ServiceShell, setup_logging
+from services.runtime.shell import Inbox, ServiceShell, parse_service_config, setup_logging
 
 SERVICE = "env-worker"
 log = logging.getLogger(SERVICE)
@@ -27,7 +26,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     if cfg.follow_policy:
         import torch
 
-        from services.policy_learner.policy_weights import warm_up
+        from causal.rl.policy_weights import warm_up
 
         torch.set_num_threads(1)
         warm_up()  # before going live, so loading the first policy never waits for imports
@@ -64,7 +63,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             batches.inc()
             episodes.inc(core.episode - last_episode)
             last_episode = core.episode
-            for (option, policy), n in option_counts(batch).items():
+            for (option, policy), n in option_counts(batch, core.option_names).items():
                 options.labels(option=option, policy=policy).inc(n)
                 stat = f"options_{policy}_{option}"
                 chosen[stat] = chosen.get(stat, 0) + n
@@ -86,7 +85,7 @@ class _PolicyFollower:
     The version in use is exported, so a worker left behind is visible."""
 
     def __init__(self, shell: ServiceShell, core: EnvWorkerCore, cfg: EnvWorkerConfig) -> None:
-        from services.policy_learner.policy_weights import MODEL
+        from causal.rl.policy_weights import MODEL
 
         self.shell, self.core, self.cfg = shell, core, cfg
         self.key = topics.weights(cfg.run_id, MODEL)
@@ -134,15 +133,13 @@ class _PolicyFollower:
         self.in_use.set(weights.version)
 
 
-def option_counts(batch) -> dict[tuple[str, str], int]:
-    """Skills started in ``batch`` by (option name, ``uniform`` or ``learned``); {} without options."""
-    if batch.option is None:
+def option_counts(batch, names: tuple[str, ...]) -> dict[tuple[str, str], int]:
+    """Skills started in ``batch`` by (option name of ``names``, ``uniform`` or ``learned``); {} without options."""
+    if batch.option is None or not names:
         return {}
-    from envs.skills import OPTION_NAMES
-
-    counts = np.bincount(batch.option[batch.option >= 0], minlength=len(OPTION_NAMES))
+    counts = np.bincount(batch.option[batch.option >= 0], minlength=len(names))
     policy = "learned" if batch.policy_version > 0 else "uniform"
-    return {(OPTION_NAMES[i], policy): int(n) for i, n in enumerate(counts) if n}
+    return {(names[i], policy): int(n) for i, n in enumerate(counts) if n}
 
 
 def _throttle(rate: float, done: int, started: float) -> None:
@@ -154,7 +151,7 @@ def _throttle(rate: float, done: int, started: float) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     setup_logging(SERVICE)
-    cfg = parse_config(EnvWorkerConfig, argv)
+    cfg = parse_service_config(EnvWorkerConfig, argv)
     log.info("starting worker %d on %s", cfg.worker_index, cfg.env)
     run(cfg)
 

@@ -1,1 +1,1 @@
-"""graph-evaluator: CMI of the latest dynamics weights on held-out episodes -> causal graph reports."""
+"""graph-evaluator: the method's graph estimators (CDL: CMI) on the latest weights and held-out episodes -> graph reports."""

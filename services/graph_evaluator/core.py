@@ -1,4 +1,5 @@
-"""graph-evaluator core: held-out set, CMI with a moving average, graph, abstraction, scores. No bus."""
+"""graph-evaluator core: held-out set, the method's edge scores (CDL: CMI) with a moving average,
+graph, abstraction, scores. No bus; no particular method (the run's comes from the registry)."""
 from __future__ import annotations
 
 import json
@@ -8,40 +9,44 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causal.abstraction import cdl_abstraction
-from causal.cdl import CDLModel, import_tensors, model_from_config_json
-from causal.cdl_trainer import with_self_edges
+from torch import nn
+
+from causal.abstraction import with_self_edges
 from causal.graph_metrics import score_graph
+from causal.method import import_tensors
+from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
-from envs.manipulation_layout import CONSTANT_FACTORS as MANIPULATION_CONSTANT_FACTORS
+from envs.registry import ENVS
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
-CONSTANT_FACTORS: dict[str, tuple[str, ...]] = {"manipulation": MANIPULATION_CONSTANT_FACTORS}
-"""Factors constant by construction, by ``EnvSpec.env_id`` (environments not listed have none). A
-table here rather than an EnvSpec field: that would be a message schema change for one env's fact."""
-
-
 def constant_factor_indices(spec: EnvSpec) -> tuple[int, ...]:
-    """Indices of the spec's factors that never vary: their columns are left out of the identifiable scores."""
-    return tuple(spec.factor_names.index(name) for name in CONSTANT_FACTORS.get(spec.env_id, ()))
+    """Indices of the spec's factors that never vary (its registry entry's ``constant_factors``; an env
+    not in the registry has none): their columns are left out of the identifiable scores."""
+    entry = ENVS.get(spec.env_id)
+    return tuple(spec.factor_names.index(name) for name in (entry.constant_factors if entry else ()))
 
 
 class GraphEvaluatorCore:
-    """Turns dynamics weights into GraphReports scored against the EnvSpec's ground truth."""
+    """Turns dynamics weights into GraphReports scored against the EnvSpec's ground truth, with the
+    global-graph estimator of the run's method (``cfg.method``)."""
 
-    def __init__(self, cfg: GraphEvaluatorConfig, spec: EnvSpec, kind: str = "cdl") -> None:
-        self.cfg, self.spec, self.kind = cfg, spec, kind
+    def __init__(self, cfg: GraphEvaluatorConfig, spec: EnvSpec) -> None:
+        self.cfg, self.spec = cfg, spec
+        self.method = get_method(cfg.method)
+        self.kind = self.method.name
         self.constant_factors = constant_factor_indices(spec)
         self.heldout = ReplayBuffer(cfg.heldout_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
-        self.model: CDLModel | None = None
+        self.model: nn.Module | None = None
         self.model_config = ""
         self.weights: Weights | None = None
         self.evaluated_version = -1
         self.evaluated_updates = 0
         self.cmi_ema: np.ndarray | None = None
+        self.threshold = float("nan")
+        """Edge threshold of the loaded model's global-graph estimator (its own configuration)."""
         self.history: list[dict[str, float]] = []
 
     def ingest(self, batch: TransitionBatch) -> int:
@@ -52,28 +57,36 @@ class GraphEvaluatorCore:
         return int(keep.sum())
 
     def load_weights(self, weights: Weights) -> None:
-        """Remember the newest weights; the model is rebuilt only when its config changes."""
+        """Remember the newest weights; the model is rebuilt only when its config changes (ValueError
+        for weights of another method, or that do not rebuild)."""
         if self.weights is not None and weights.version <= self.weights.version:
             return
         if weights.config_json != self.model_config:
-            self.model = model_from_config_json(weights.config_json)
-            self.model_config = weights.config_json
+            if json.loads(weights.config_json).get("model") != self.kind:
+                raise ValueError(f"weights of method {weights.model!r}, this evaluator runs {self.kind!r}")
+            self.model, self.model_config = model_from_config_json(weights.config_json), weights.config_json
+            if self.method.global_graph is not None:
+                self.threshold = float(self.method.global_graph.threshold(self.model))
         import_tensors(self.model, weights.tensors)
         self.weights = weights
 
     @property
     def due(self) -> bool:
-        return (self.weights is not None and self.weights.version > self.evaluated_version
-                and self.heldout.size >= self.cfg.min_heldout)
+        return (self.method.global_graph is not None and self.weights is not None
+                and self.weights.version > self.evaluated_version and self.heldout.size >= self.cfg.min_heldout)
+
+    def edge_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
+        """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions."""
+        return np.asarray(self.method.global_graph.scores(self.model, state, action, next_state), dtype=np.float32)
 
     def evaluate(self) -> GraphReport:
-        """CMI for every edge on held-out data, smoothed, thresholded and scored."""
+        """Edge scores for every edge on held-out data, smoothed, thresholded and scored."""
         assert self.model is not None and self.weights is not None
         n = min(self.cfg.eval_samples, self.heldout.size)
         index = self.heldout.rng.choice(self.heldout.size, n, replace=False)
         s, a, nxt = (torch.from_numpy(x[: self.heldout.size][index]) for x in
                      (self.heldout.state, self.heldout.action, self.heldout.next_state))
-        cmi = self.model.cmi(s, a, nxt).numpy()
+        cmi = self.edge_scores(s, a, nxt)
         alpha = self.previous_weight(self.weights.updates)
         self.cmi_ema = cmi if self.cmi_ema is None else alpha * self.cmi_ema + (1 - alpha) * cmi
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
@@ -84,7 +97,7 @@ class GraphEvaluatorCore:
         held-out transition, on its own (the running average, which mixes earlier models and
         draws of ``eval_samples``, is replaced by it)."""
         assert self.model is not None and self.weights is not None
-        self.cmi_ema = self.model.cmi(*self.heldout.all()).numpy()
+        self.cmi_ema = self.edge_scores(*self.heldout.all())
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(self.heldout.size)
 
@@ -100,23 +113,26 @@ class GraphEvaluatorCore:
         return float(self.cfg.cmi_ema ** max(since, 1)) if since >= 0 else 0.0
 
     def report(self, num_heldout: int) -> GraphReport:
-        cmi = self.cmi_ema.astype(np.float32)
-        adjacency = with_self_edges(cmi >= self.cfg.cmi_threshold).astype(np.uint8)
-        abstraction = cdl_abstraction(adjacency)
+        cmi, threshold = self.cmi_ema.astype(np.float32), self.threshold
+        adjacency = with_self_edges(cmi >= threshold).astype(np.uint8)
+        abstraction = self.method.abstraction(adjacency)
         truth = self.spec.global_graph
-        metrics = score_graph(cmi, truth, self.cfg.cmi_threshold, self.constant_factors) if truth is not None else {}
+        metrics = score_graph(cmi, truth, threshold, self.constant_factors) if truth is not None else {}
         w = self.weights
         self.history.append({"env_steps": w.env_steps, "updates": w.updates, "time": time.time(), **metrics})
         return GraphReport(kind=self.kind, weights_version=w.version, env_steps=w.env_steps, updates=w.updates,
                            factor_names=self.spec.factor_names, cmi=cmi, adjacency=adjacency,
-                           threshold=self.cfg.cmi_threshold, controllable=abstraction.controllable,
+                           threshold=threshold, controllable=abstraction.controllable,
                            action_relevant=abstraction.action_relevant,
                            action_irrelevant=abstraction.action_irrelevant, metrics=metrics,
                            true_graph=truth, num_heldout=num_heldout, timestamp=time.time())
 
     def fingerprint(self) -> str:
-        """What a checkpoint must match to be resumed: the environment (held-out data is env-specific)."""
-        return json.dumps({"env": self.spec.env_id, "env_config": json.loads(self.spec.config_json)}, sort_keys=True)
+        """What a checkpoint must match to be resumed: the environment (held-out data is env-specific);
+        the method too, except CDL's, so checkpoints made before methods were plug-ins still resume."""
+        method = {} if self.kind == "cdl" else {"method": self.kind}
+        return json.dumps({"env": self.spec.env_id, "env_config": json.loads(self.spec.config_json), **method},
+                          sort_keys=True)
 
     def checkpoint(self, path: Path) -> None:
         state = {"fingerprint": self.fingerprint(), "heldout": self.heldout.state_dict(),

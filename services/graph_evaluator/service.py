@@ -7,6 +7,7 @@ import time
 
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
+from causal.graph_metrics import REPORTED_SCORES
 from proto.messages import GraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
 from services.graph_evaluator.config import GraphEvaluatorConfig
@@ -14,10 +15,6 @@ from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.shell import ServiceShell, service_main
 
 SERVICE = "graph-evaluator"
-KIND = "cdl"
-SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold_f1",
-          "identifiable_accuracy", "identifiable_f1", "identifiable_best_threshold_f1",
-          "with_self_accuracy", "with_self_f1", "with_self_best_threshold_f1")
 log = logging.getLogger(SERVICE)
 
 
@@ -25,15 +22,15 @@ class _Metrics:
     def __init__(self, shell: ServiceShell) -> None:
         m = shell.metrics
         self.scores = {name: m.gauge(f"causeway_graph_{name}_ratio", f"Learned graph {name} against the ground truth")
-                       for name in SCORES}
-        self.best_threshold = m.gauge("causeway_graph_best_threshold_nats", "CMI threshold with the best F1")
+                       for name in REPORTED_SCORES}
+        self.best_threshold = m.gauge("causeway_graph_best_threshold_nats", "Edge-score threshold with the best F1 (CMI: nats)")
         self.edges = m.gauge("causeway_graph_edges", "Edges in the learned graph (self-edges excluded)")
         self.classes = m.gauge("causeway_abstraction_factors", "Factors per abstraction class", ("class",))
         self.reports = m.counter("causeway_graph_reports", "GraphReports published")
         self.heldout = m.gauge("causeway_heldout_transitions", "Held-out transitions available for CMI")
         self.version = m.gauge("causeway_graph_weights_version", "Weights version of the last report")
         self.env_steps = m.gauge("causeway_graph_env_steps", "Env steps behind the last report")
-        self.eval_seconds = m.histogram("causeway_graph_eval_seconds", "Duration of one all-pairs CMI evaluation",
+        self.eval_seconds = m.histogram("causeway_graph_eval_seconds", "Duration of one all-pairs edge-score evaluation",
                                         (0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32))
 
     def observe(self, report: GraphReport) -> None:
@@ -57,13 +54,13 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
     transitions = shell.inbox("transitions", TransitionBatch, maxsize=256)
     weights = shell.inbox("weights", Weights, maxsize=2)
     shell.subscribe(topics.transitions(cfg.run_id), transitions)
-    shell.subscribe(topics.weights(cfg.run_id, KIND), weights)
-    latest_graph = shell.transport.serve_latest(topics.graph(cfg.run_id, KIND))
+    shell.subscribe(topics.weights(cfg.run_id, cfg.method), weights)
+    latest_graph = shell.transport.serve_latest(topics.graph(cfg.run_id, cfg.method))
     spec = shell.wait_for_spec()
     if spec is None:
         shell.close()
         return
-    core = GraphEvaluatorCore(cfg, spec, KIND)
+    core = GraphEvaluatorCore(cfg, spec)
     ckpt = shell.resume(core)
     _catch_up(shell, core, cfg)
     last_eval, last_ckpt = 0.0, time.monotonic()
@@ -99,7 +96,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
 
 def _catch_up(shell: ServiceShell, core: GraphEvaluatorCore, cfg: GraphEvaluatorConfig) -> None:
     """A late (or restarted) evaluator asks for the current weights instead of waiting for the next ones."""
-    for key, payload in shell.transport.query(topics.weights(cfg.run_id, KIND), timeout=1.0):
+    for key, payload in shell.transport.query(topics.weights(cfg.run_id, cfg.method), timeout=1.0):
         try:
             _load(core, decode(payload, Weights), shell)
         except ProtocolError as exc:

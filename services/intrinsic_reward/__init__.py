@@ -1,1 +1,1 @@
-"""intrinsic-reward: scores transitions with an intrinsic reward from the learned causal dynamics model."""
+"""intrinsic-reward: scores transitions with an intrinsic reward from the method's learned dynamics model (or its own ensemble)."""

@@ -1,11 +1,15 @@
-"""intrinsic-reward core: the newest CDL weights and causal graph score transition batches. No bus."""
+"""intrinsic-reward core: the newest weights of the run's method and its causal graph score transition
+batches (or this service's own ensemble does). No bus."""
 from __future__ import annotations
 
 import numpy as np
 
-from causal.cdl import CDLModel, import_tensors, model_from_config_json
+from torch import nn
+
 from causal.factored import FactorLayout
 from causal.intrinsic import BootstrapEnsemble, make_reward, score
+from causal.method import import_tensors
+from causal.methods import get_method, model_from_config_json
 from proto.codec import ProtocolError, check_fits
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
 from services.intrinsic_reward.config import IntrinsicRewardConfig
@@ -22,7 +26,11 @@ class IntrinsicRewardCore:
     def __init__(self, cfg: IntrinsicRewardConfig, spec: EnvSpec) -> None:
         self.cfg, self.spec = cfg, spec
         self.reward = make_reward(cfg.reward, cfg.eta)
-        self.model: CDLModel | None = None
+        method = get_method(cfg.method)
+        if self.reward.source == "dynamics" and cfg.reward not in method.intrinsic:
+            raise ValueError(f"reward {cfg.reward!r} reads the dynamics model; method {method.name!r} serves "
+                             f"{', '.join(method.intrinsic) or 'none'}")
+        self.model: nn.Module | None = None
         self.model_config = ""
         self.weights_version = 0
         self.graph_version = -1
@@ -36,8 +44,10 @@ class IntrinsicRewardCore:
         if weights.version <= self.weights_version:
             return False
         if weights.config_json != self.model_config:
+            if weights.model != self.cfg.method:
+                raise ValueError(f"weights of method {weights.model!r}, the run's is {self.cfg.method!r}")
             model = model_from_config_json(weights.config_json)
-            if model.layout.state_dim != self.spec.state_dim or model.num_outputs != self.spec.num_factors:
+            if model.layout.state_dim != self.spec.state_dim or model.layout.num_factors != self.spec.num_factors:
                 raise ValueError(f"weights v{weights.version} do not fit the EnvSpec")
             self.model, self.model_config = model, weights.config_json
         import_tensors(self.model, weights.tensors)

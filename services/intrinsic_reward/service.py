@@ -11,8 +11,8 @@ from proto.messages import GraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
 from services.intrinsic_reward.config import IntrinsicRewardConfig
 from services.intrinsic_reward.core import IntrinsicRewardCore
-from services.runtime.config import parse_config, write_config
-from services.runtime.shell import ServiceShell, setup_logging
+from services.runtime.config import write_config
+from services.runtime.shell import ServiceShell, service_main
 
 SERVICE = "intrinsic-reward"
 log = logging.getLogger(SERVICE)
@@ -36,8 +36,8 @@ def run(cfg: IntrinsicRewardConfig, transport: Transport | None = None) -> None:
     weights = shell.inbox("weights", Weights, maxsize=2)
     graphs = shell.inbox("graph", GraphReport, maxsize=4)
     shell.subscribe(topics.transitions(cfg.run_id), transitions)
-    shell.subscribe(topics.weights(cfg.run_id, cfg.dynamics_model), weights)
-    shell.subscribe(topics.graph(cfg.run_id, cfg.dynamics_model), graphs)
+    shell.subscribe(topics.weights(cfg.run_id, cfg.method), weights)
+    shell.subscribe(topics.graph(cfg.run_id, cfg.method), graphs)
     spec = shell.wait_for_spec()
     if spec is None:
         shell.close()
@@ -82,8 +82,8 @@ def _load(shell: ServiceShell, core: IntrinsicRewardCore, weights: list[Weights]
 def _catch_up(shell: ServiceShell, core: IntrinsicRewardCore, cfg: IntrinsicRewardConfig, metrics: _Metrics) -> None:
     """A late (or restarted) scorer asks for the current weights and graph instead of waiting."""
     found: dict[type, list] = {Weights: [], GraphReport: []}
-    for key, cls in ((topics.weights(cfg.run_id, cfg.dynamics_model), Weights),
-                     (topics.graph(cfg.run_id, cfg.dynamics_model), GraphReport)):
+    for key, cls in ((topics.weights(cfg.run_id, cfg.method), Weights),
+                     (topics.graph(cfg.run_id, cfg.method), GraphReport)):
         for _, payload in shell.transport.query(key, timeout=1.0):
             try:
                 found[cls].append(decode(payload, cls))
@@ -97,10 +97,7 @@ def _config_path(cfg: IntrinsicRewardConfig) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    setup_logging(SERVICE)
-    import torch
-    torch.set_num_threads(1)
-    run(parse_config(IntrinsicRewardConfig, argv))
+    service_main(SERVICE, IntrinsicRewardConfig, run, argv)
 
 
 if __name__ == "__main__":

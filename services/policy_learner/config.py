@@ -13,12 +13,11 @@ ALGOS = ("ppo", "sac")
 class PolicyLearnerConfig(ServiceConfig):
     """policy-learner: PPO (discrete or continuous actions) or SAC (continuous) behind one interface."""
 
-    algo: str = doc("ppo", "ppo or sac")
+    algo: str = doc("ppo", "policy learning algorithm", choices=ALGOS)
     skills: bool = doc(False, "PPO over the env's skill options (envs.skills.OPTIONS; manipulation) instead of raw "
                               "actions: one decision per skill, its return the sum of the skill's step rewards")
     skill_rollout: int = doc(8, "skills: consecutive decisions of one worker per PPO column (and the PPO "
                                 "minibatch size, if smaller than minibatch_size)")
-    seed: int = doc(0, "seed of the policy initialisation and sampling")
     scored: bool = doc(False, "learn from ScoredBatches (scored/*, with intrinsic rewards) instead of transitions/*")
     extrinsic_coef: float = doc(1.0, "weight of the environment reward")
     intrinsic_coef: float = doc(1.0, "weight of the intrinsic reward (scored batches only)")
@@ -41,10 +40,10 @@ class PolicyLearnerConfig(ServiceConfig):
     action_low: float = doc(-1.0, "continuous actions: lower bound of every dimension")
     action_high: float = doc(1.0, "continuous actions: upper bound of every dimension")
     publish_every_updates: int = doc(0, "updates between weight publications (0: PPO 1, SAC 100)")
-    checkpoint_every_s: float = doc(30.0, "seconds between checkpoints")
     max_updates: int = doc(0, "stop after this many updates (0: never)")
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
         if self.skills and self.algo != "ppo":

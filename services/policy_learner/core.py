@@ -29,11 +29,12 @@ from causal.factored import FactorLayout
 from causal.rl import ActionSpec, PPOAgent, RolloutBatch, SACAgent, UniformReplay, abstraction_input_mask
 from causal.rl.base import as_batch
 from causal.rl.ppo import ActorCritic
+from envs.registry import ENVS
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.options import Decision, OptionStitcher
-from services.policy_learner.policy_weights import MODEL, export_policy, policy_config_json
+from causal.rl.policy_weights import MODEL, export_policy, policy_config_json
 from services.runtime.checkpoint import load_checkpoint, save_checkpoint
 
 DROP_REASONS = ("stale", "future", "random_policy", "unknown_policy")
@@ -79,17 +80,20 @@ def _stack(segments: list[_Segment], name: str) -> torch.Tensor:
     return torch.stack([getattr(s, name) for s in segments], dim=1)
 
 
-def skill_options(cfg: PolicyLearnerConfig) -> tuple[str, ...]:
-    """The names of the options a policy over skills picks among (() for raw actions)."""
+def skill_options(cfg: PolicyLearnerConfig, spec: EnvSpec) -> tuple[str, ...]:
+    """The names of the options a policy over skills picks among (() for raw actions): those of the
+    env's skill runner (its registry entry); ValueError for an env without one."""
     if not cfg.skills:
         return ()
-    from envs.skills import OPTION_NAMES
-    return OPTION_NAMES
+    runner = ENVS[spec.env_id].skill_runner() if spec.env_id in ENVS else None
+    if runner is None:
+        raise ValueError(f"a policy over skills on {spec.env_id!r}, which has no skills")
+    return tuple(runner.OPTION_NAMES)
 
 
 def action_spec(spec: EnvSpec, cfg: PolicyLearnerConfig) -> ActionSpec:
     if cfg.skills:
-        return ActionSpec("categorical", len(skill_options(cfg)))
+        return ActionSpec("categorical", len(skill_options(cfg, spec)))
     if spec.action_kind == "categorical":
         return ActionSpec("categorical", spec.action_size)
     return ActionSpec("continuous", spec.action_size, (cfg.action_low,) * spec.action_size,
@@ -103,7 +107,7 @@ class PolicyLearnerCore:
         self.cfg, self.spec = cfg, spec
         self.layout = FactorLayout.from_spec(spec)
         self.action = action_spec(spec, cfg)
-        self.options = skill_options(cfg)
+        self.options = skill_options(cfg, spec)
         self.stitcher = OptionStitcher(cfg.skill_rollout) if cfg.skills else None
         if cfg.algo == "ppo":
             self.agent: PPOAgent | SACAgent = PPOAgent(spec.state_dim, self.action, cfg.ppo(), seed=cfg.seed)

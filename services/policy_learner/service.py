@@ -10,11 +10,10 @@ from proto.messages import GraphReport, ScoredBatch, TransitionBatch
 from services.bus.base import Transport
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import DROP_REASONS, PolicyLearnerCore, Verdict
-from services.policy_learner.policy_weights import MODEL
+from causal.rl.policy_weights import MODEL
 from services.runtime.shell import Inbox, ServiceShell, service_main
 
 SERVICE = "policy-learner"
-GRAPH_KIND = "cdl"
 log = logging.getLogger(SERVICE)
 
 
@@ -46,7 +45,7 @@ def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
                          maxsize=256)
     graphs = shell.inbox("graph", GraphReport, maxsize=4)
     shell.subscribe(topics.scored(cfg.run_id) if cfg.scored else topics.transitions(cfg.run_id), source)
-    shell.subscribe(topics.graph(cfg.run_id, GRAPH_KIND), graphs)
+    shell.subscribe(topics.graph(cfg.run_id, cfg.method), graphs)
     latest = shell.transport.serve_latest(topics.weights(cfg.run_id, MODEL))
     spec = shell.wait_for_spec()
     if spec is None:

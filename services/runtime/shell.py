@@ -207,4 +207,15 @@ def service_main(service: str, config_cls: type, run: Callable[[Any], None], arg
     setup_logging(service)
     import torch
     torch.set_num_threads(1)
-    run(parse_config(config_cls, argv))
+    run(parse_service_config(config_cls, argv))
+
+
+def parse_service_config(config_cls: type, argv: list[str] | None) -> Any:
+    """A service's configuration; a refused one exits with ``CONFIG_ERROR_EXIT`` (the supervisor then
+    stops the run with the reason instead of restarting the service)."""
+    try:
+        return parse_config(config_cls, argv)
+    except SystemExit as exc:
+        if exc.code not in (0, None):
+            sys.exit(CONFIG_ERROR_EXIT)
+        raise

@@ -1,68 +1,97 @@
-"""Configuration of a local run (``causeway run``)."""
+"""Configuration of a local run (``causeway run``): run-level settings composed with every service's
+and every method's settings, each declared once, where it belongs.
+
+* Run-wide settings every service shares (``--method``, ``--seed``, ``--heldout-fraction``,
+  ``--checkpoint-every-s``): :class:`services.runtime.config.RunSettings`.
+* A method's hyper-parameters: its own config class (``causal/``), flags ``--<method>-<field>``
+  (``--cdl-lr``, ``--cdl-lr-decay-updates``, ...).
+* Environment construction options (``--graph``, ``--num-objects``, ``--cpt-seed``):
+  :class:`envs.registry.EnvOptions`.
+* A service's own settings: its config class, flags ``--<service>-<field>`` (``--learner-replay-capacity``,
+  ``--evaluator-min-interval-s``, ``--worker-max-steps-per-second``, ``--policy-hide``, ``--intrinsic-eta``).
+  Fields the wiring sets (ports, ids, the method, the algorithm the collector implies, ...) are not flags.
+
+Where a run's default differs from a service's own default (a run publishes weights every 5 s, a
+learner on its own every 3 s), the section states the run's value: ``section(..., publish_every_s=5.0)``.
+"""
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
-from causal.cdl import CDLConfig
-from services.dynamics_learner.config import DynamicsLearnerConfig
-from services.runtime.config import doc
+from causal.graph_metrics import REPORTED_SCORES
+from causal.intrinsic import reward_names
+from envs.registry import EnvOptions, env_names, task_names
+from proto.settings import section
+from services.dynamics_learner.config import DynamicsLearnerConfig, MethodConfigs
+from services.env_worker.config import EnvWorkerConfig
+from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.intrinsic_reward.config import IntrinsicRewardConfig
+from services.policy_learner.config import ALGOS, PolicyLearnerConfig
+from services.runtime.config import SERVICE_FIELDS, RunSettings, config_from_dict, doc
 
-_CDL = CDLConfig()
-COLLECTORS = ("random", "ppo", "sac")
-INTRINSIC = ("none", "preddiff", "curiosity", "disagreement")
-TASKS = {"": None, "match": "chemical-match"}
-"""Task name -> the environment that poses it."""
+COLLECTORS = ("random",) + ALGOS
+INTRINSIC = ("none",) + reward_names()
 
 
 @dataclass(frozen=True)
-class RunConfig:
+class RunConfig(RunSettings):
     """causeway run: start a router and every service locally, learn, report."""
 
-    env: str = doc("chemical", "environment: chemical")
-    graph: str = doc("full", "Chemical object graph: collider, chain, full or PATH.json")
-    num_objects: int = doc(10, "Chemical: number of objects")
-    cpt_seed: int = doc(0, "Chemical: seed of the fixed conditional probability tables")
-    seed: int = doc(0, "run seed (worker i uses seed + i)")
+    env: str = doc("chemical", "environment (envs.registry)", choices=env_names)
+    task: str = doc("", "task on the environment ('' none: reward-free); a task may name the env that poses it "
+                        "(match: chemical-match)", choices=task_names)
     workers: int = doc(1, "number of env-worker processes")
     max_seconds: float = doc(900.0, "stop after this many seconds of wall time (0: no limit)")
-    max_env_steps: int = doc(0, "stop after this many env steps (0: no limit); with --updates-per-env-step the "
-                                "env-workers pause there and the run stops once the learner caught up")
-    updates_per_env_step: float = doc(0.0, "dynamics-learner: at most this many updates per env step ingested, so "
-                                           "collectors of different speeds train the same (0: as fast as possible)")
-    catch_up_timeout_s: float = doc(600.0, "with --updates-per-env-step and --max-env-steps: longest wait, after the "
-                                           "env-step budget, for the learner to catch up and the graph to follow")
-    target_f1: float = doc(0.0, "stop once the graph's F1 reaches this (0: never)")
-    target_metric: str = doc("f1", "metric compared with --target-f1: f1 (working threshold) or best_threshold_f1")
+    max_env_steps: int = doc(0, "stop after this many env steps (0: no limit); with --learner-updates-per-env-step "
+                                "the env-workers pause there and the run stops once the learner caught up")
+    catch_up_timeout_s: float = doc(600.0, "with --learner-updates-per-env-step and --max-env-steps: longest wait, "
+                                           "after the env-step budget, for the learner to catch up and the graph to follow")
+    target_f1: float = doc(0.0, "stop once the graph's --target-metric reaches this (0: never)")
+    target_metric: str = doc("f1", "graph score compared with --target-f1", choices=REPORTED_SCORES)
     run_id: str = doc("", "run id (default: derived from env, graph and time)")
     run_dir: str = doc("", "run directory (default: runs/<run_id>); an existing one is resumed")
     router_port: int = doc(7447, "TCP port of the Zenoh router on 127.0.0.1 (0: pick a free one)")
     metrics_base_port: int = doc(9100, "Prometheus ports: learner +1, evaluator +2, worker i +10+i (0: none)")
-    steps_per_second: float = doc(2000.0, "throttle per env-worker (0: unthrottled)")
-    lr: float = doc(_CDL.lr, "CDL Adam learning rate")
-    lr_decay_updates: int = doc(_CDL.lr_decay_updates, "CDL: cosine decay of the learning rate from --lr to "
-                                                       "--lr-final over this many updates (0: constant)")
-    lr_final: float = doc(_CDL.lr_final, "CDL learning rate at the end of the decay")
-    batch_size: int = doc(_CDL.batch_size, "CDL batch size")
-    replay_capacity: int = doc(DynamicsLearnerConfig.replay_capacity,
-                               "dynamics-learner: transitions kept in its replay (oldest dropped); raise it for "
-                               "runs longer than this many env steps")
-    feature_dim: int = doc(_CDL.feature_dim, "CDL feature size (and feature-network hidden width)")
-    predictor_hidden: int = doc(_CDL.predictor_hidden, "CDL head hidden width")
-    cmi_threshold: float = doc(_CDL.cmi_threshold, "CMI edge threshold, nats")
-    eval_interval_s: float = doc(5.0, "minimum seconds between graph evaluations")
-    publish_every_s: float = doc(5.0, "seconds between weight publications")
     dashboard_port: int = doc(8080, "port of the live causal-graph page on 127.0.0.1 (0: no dashboard)")
-    checkpoint_every_s: float = doc(30.0, "seconds between service checkpoints")
     progress: bool = doc(True, "show live progress on the terminal")
-    collector: str = doc("random", "collection policy: random, ppo or sac (the last two start a policy-learner "
-                                   "whose newest weights the workers act with)")
-    intrinsic: str = doc("none", "intrinsic reward of the policy: none, preddiff, curiosity or disagreement "
-                                 "(all but none start an intrinsic-reward service)")
-    task: str = doc("", "task on the environment: '' (none, reward-free) or match (env chemical-match)")
-    abstraction: bool = doc(True, "mask the policy input to the learned abstraction (false: the dense baseline)")
-    max_policy_lag: int = doc(4, "policy-learner: drop batches more than this many policy versions old")
-    policy_hide: str = doc("", "policy-learner: factor-name prefixes the policy never sees (e.g. 'mk': the "
-                               "manipulation markers)")
-    intrinsic_coef: float = doc(1.0, "policy-learner: weight of the intrinsic reward")
-    evaluate: bool = doc(True, "after a Chemical run: k-step prediction of the run's CDL model on ID and OOD "
-                               "states and, with --task match, CEM and policy returns (summary.json, evaluation.png)")
+    collector: str = doc("random", "collection policy: random (the env's default: uniform actions, or uniform "
+                                   "skills where the env has them), ppo or sac (start a policy-learner whose "
+                                   "newest weights the workers act with)", choices=COLLECTORS)
+    intrinsic: str = doc("none", "intrinsic reward of the policy (all but none start an intrinsic-reward service)",
+                         choices=INTRINSIC)
+    evaluate: bool = doc(True, "after the run: the final graph on all held-out data and, where the env and "
+                               "method have one, the post-run evaluation (Chemical: k-step prediction and, with "
+                               "--task match, CEM and policy returns; summary.json, evaluation.png)")
+
+    env_options: EnvOptions = section(EnvOptions, prefix="")
+    models: MethodConfigs = section(MethodConfigs, prefix="")
+    learner: DynamicsLearnerConfig = section(DynamicsLearnerConfig, prefix="learner",
+                                             exclude=SERVICE_FIELDS + ("models",), publish_every_s=5.0)
+    evaluator: GraphEvaluatorConfig = section(GraphEvaluatorConfig, prefix="evaluator", exclude=SERVICE_FIELDS,
+                                              min_interval_s=5.0)
+    worker: EnvWorkerConfig = section(EnvWorkerConfig, prefix="worker",
+                                      exclude=SERVICE_FIELDS + ("env", "env_options", "worker_index", "follow_policy"),
+                                      max_steps_per_second=2000.0)
+    policy: PolicyLearnerConfig = section(PolicyLearnerConfig, prefix="policy",
+                                          exclude=SERVICE_FIELDS + ("algo", "skills", "scored"))
+    intrinsic_reward: IntrinsicRewardConfig = section(IntrinsicRewardConfig, prefix="intrinsic",
+                                                      exclude=SERVICE_FIELDS + ("reward",))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
+        for name in ("max_seconds", "max_env_steps", "catch_up_timeout_s", "target_f1"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("router_port", "metrics_base_port", "dashboard_port"):
+            if not 0 <= getattr(self, name) <= 65535:
+                raise ValueError(f"{name} must be a port in [0, 65535], got {getattr(self, name)}")
+
+
+def load_run_config(run_dir: Path) -> RunConfig:
+    """The configuration a run directory was started with (its ``config.json``; one written before
+    settings moved into sections is read by flag name, see ``config_from_dict``)."""
+    return config_from_dict(RunConfig, json.loads((Path(run_dir) / "config.json").read_text()))

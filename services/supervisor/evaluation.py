@@ -1,6 +1,8 @@
-"""After a Chemical run: evaluate the run's own models the way chapter 3 does, for the summary.
+"""After a run on an environment whose registry entry names the ``chemical`` evaluation suite, with a
+method whose model can be rolled out (``Method.rollout_step``): evaluate the run's own models the
+way chapter 3 does, for the summary.
 
-- **Prediction** (Figs 3.6-3.8): the dynamics-learner's final CDL model, in causal mode on the last
+- **Prediction** (Figs 3.6-3.8): the dynamics-learner's final model, in causal mode on the last
   graph report's graph, rolled out 1..5 steps on ID states and on OOD states (positions with noise
   scale sigma). Colour accuracy per step.
 - **Match** (ch. 3.3.5, Figure 3.11), for ``--task match`` runs: CEM planning with that frozen model
@@ -8,7 +10,7 @@
   policy-learner's final policy acting deterministically; episode reward on ID and OOD states, with
   random actions on the same start states for reference.
 
-The dense baselines are not trained by a run (the services train CDL only);
+The dense baselines are not trained by a run;
 ``benchmarks/bench_ch3_generalisation.py`` compares CDL with them on identical data.
 """
 from __future__ import annotations
@@ -23,19 +25,28 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from torch import nn
+
 from causal.abstraction import Abstraction
-from causal.cdl import CDLModel, model_from_config_json
 from causal.generalisation import (MatchConfig, acted_returns, match_dataset, per_setting, planner_returns,
                                    random_returns, reward_inputs)
-from causal.planning import cdl_rollout_step
+from causal.method import Method
+from causal.methods import get_method, model_from_config_json
 from causal.prediction_eval import evaluate_chemical_prediction
 from envs.chemical import ChemicalEnv
 from envs.chemical_match import ChemicalMatchEnv
+from envs.registry import EnvEntry
 from proto.messages import GraphReport
 from services.runtime.checkpoint import load_checkpoint
 
 log = logging.getLogger("supervisor")
-CHEMICAL_ENVS = {"chemical": ChemicalEnv, "chemical-match": ChemicalMatchEnv}
+SUITE = "chemical"
+"""The ``EnvEntry.evaluation`` this module evaluates."""
+
+
+def applies(entry: EnvEntry, method: Method) -> bool:
+    """Whether this evaluation suite applies to a run of ``method`` on ``entry``."""
+    return entry.evaluation == SUITE and method.rollout_step is not None
 
 
 @dataclass(frozen=True)
@@ -50,48 +61,50 @@ class EvaluationConfig:
     seed: int = 12345
 
 
-def evaluate_run(run_dir: Path, env: str, env_kwargs: dict[str, Any], report: GraphReport,
+def evaluate_run(run_dir: Path, entry: EnvEntry, env_kwargs: dict[str, Any], report: GraphReport,
                  policy: Callable[[np.ndarray], Any] | None = None, cfg: EvaluationConfig = EvaluationConfig(),
                  ) -> dict[str, Any]:
     """``{"prediction": {...}, "match": {...}}`` for a Chemical run, from its checkpoints.
 
     ``policy`` (observation -> action), when given on a Match run, is evaluated beside CEM."""
-    env_cls = CHEMICAL_ENVS[env]
-    model = load_cdl(run_dir)
+    env_cls = entry.env_class()
+    model = load_model(run_dir)
+    method = get_method(report.kind)
     graph = torch.from_numpy(report.adjacency.astype(bool))
     started = time.perf_counter()
-    accuracy = evaluate_chemical_prediction(cdl_rollout_step(model, graph), env_kwargs, cfg.noise_scales,
+    accuracy = evaluate_chemical_prediction(method.rollout_step(model, graph), env_kwargs, cfg.noise_scales,
                                             cfg.prediction_starts, cfg.max_steps, cfg.seed, env_cls)
     out: dict[str, Any] = {
-        "prediction": {"model": "CDL (run's final weights, causal mode on the last graph)",
+        "prediction": {"model": f"{method.name} (run's final weights, causal mode on the last graph)",
                        "starts": cfg.prediction_starts,
                        "colour_accuracy": {k: [round(float(x), 4) for x in v] for k, v in accuracy.items()}}}
-    if env_cls is ChemicalMatchEnv:
-        out["match"] = match_evaluation(model, report, env_kwargs, policy, cfg)
+    if issubclass(env_cls, ChemicalMatchEnv):
+        out["match"] = match_evaluation(model, method, report, env_kwargs, policy, cfg)
     out["evaluation_seconds"] = round(time.perf_counter() - started, 1)
     return out
 
 
-def load_cdl(run_dir: Path) -> CDLModel:
-    """The dynamics-learner's last checkpointed CDL model, rebuilt from the model config that the
-    checkpoint's fingerprint carries (so any run's checkpoint loads without its service config)."""
+def load_model(run_dir: Path) -> nn.Module:
+    """The dynamics-learner's last checkpointed model, rebuilt (through the method registry) from the
+    model config that the checkpoint's fingerprint carries, so any run's checkpoint loads without its
+    service config."""
     path = run_dir / "checkpoints" / "dynamics-learner-0.pt"
     saved = load_checkpoint(path)
     if saved is None:
         raise FileNotFoundError(f"no dynamics-learner checkpoint at {path}")
-    return cdl_from_checkpoint(saved)
+    return model_from_checkpoint(saved)
 
 
-def cdl_from_checkpoint(saved: dict) -> CDLModel:
-    """The CDL model of a loaded dynamics-learner checkpoint, in eval mode."""
+def model_from_checkpoint(saved: dict) -> nn.Module:
+    """The model of a loaded dynamics-learner checkpoint, in eval mode."""
     model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
     model.load_state_dict(saved["trainer"]["model"])
     return model.eval()
 
 
-def match_evaluation(model: CDLModel, report: GraphReport, env_kwargs: dict[str, Any],
+def match_evaluation(model: nn.Module, method: Method, report: GraphReport, env_kwargs: dict[str, Any],
                      policy: Callable[[np.ndarray], Any] | None, cfg: EvaluationConfig) -> dict[str, Any]:
-    """Episode rewards of CEM with the run's CDL model, of the run's policy and of random actions."""
+    """Episode rewards of CEM with the run's model, of the run's policy and of random actions."""
     num_objects = ChemicalEnv(**env_kwargs).num_objects
     state_factors = 3 * num_objects
     # The Match observation appends the goal factors, which the run's graph covers too (each depends
@@ -101,11 +114,11 @@ def match_evaluation(model: CDLModel, report: GraphReport, env_kwargs: dict[str,
                               tuple(j for j in report.action_relevant if j < state_factors), ())
     kept = abstraction.kept
     data = match_dataset(env_kwargs, cfg.match.reward_episodes, cfg.seed)
-    step = cdl_rollout_step(model, torch.from_numpy(report.adjacency.astype(bool)), kept)
+    step = method.rollout_step(model, torch.from_numpy(report.adjacency.astype(bool)), kept)
     out: dict[str, Any] = {
         "episodes": cfg.match.episodes,
         "abstraction_kept": [report.factor_names[j] for j in kept],
-        "returns": {"CEM + CDL": planner_returns(step, reward_inputs(abstraction, num_objects), env_kwargs,
+        "returns": {f"CEM + {method.name.upper()}": planner_returns(step, reward_inputs(abstraction, num_objects), env_kwargs,
                                                   cfg.match_noise_scales, data, cfg.match, cfg.seed)}}
     if policy is not None:
         deterministic = lambda obs: int(np.asarray(policy(obs)).reshape(-1)[0])  # noqa: E731
@@ -135,7 +148,7 @@ def plot_evaluation(evaluation: dict[str, Any], path: Path) -> None:
     ax.set_xlabel("prediction steps")
     ax.set_ylabel("colour accuracy")
     ax.set_ylim(0, 1.02)
-    ax.set_title("CDL k-step prediction (this run's model)")
+    ax.set_title("k-step prediction (this run's model)")
     ax.grid(alpha=0.3)
     ax.legend(loc="lower left")
     if match:

@@ -22,24 +22,28 @@ import time
 from pathlib import Path
 from typing import Any
 
-from causal.cdl import export_tensors, model_config_json
+from causal.method import export_tensors
 from proto.messages import EnvSpec, GraphReport, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.checkpoint import load_checkpoint
 from services.supervisor import report as reporting
-from services.supervisor.evaluation import cdl_from_checkpoint
+from services.supervisor.evaluation import model_from_checkpoint
+from services.supervisor.wiring import run_env_spec, service_configs
 
 
 def final_graph(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec) -> GraphReport | None:
-    """The final model's graph on the whole held-out set, or None without both checkpoints."""
+    """The final model's graph on the whole held-out set, or None without both checkpoints (or for a
+    method without a global graph)."""
     learner = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
     core = GraphEvaluatorCore(evaluator_cfg, spec)
-    if learner is None or not core.restore(run_dir / "checkpoints" / "graph-evaluator-0.pt") or not core.heldout.size:
+    if (learner is None or core.method.global_graph is None
+            or not core.restore(run_dir / "checkpoints" / "graph-evaluator-0.pt") or not core.heldout.size):
         return None
-    model = cdl_from_checkpoint(learner)
-    core.load_weights(Weights(model="cdl", version=int(learner["version"]),
-                              config_json=model_config_json(model.layout, model.cfg),
+    model = model_from_checkpoint(learner)
+    config = json.loads(learner["fingerprint"])["model"]
+    core.load_weights(Weights(model=config["model"], version=int(learner["version"]),
+                              config_json=json.dumps(config, sort_keys=True),
                               tensors=export_tensors(model), updates=int(learner["trainer"]["updates"]),
                               env_steps=int(learner["env_steps"])))
     return core.evaluate_final()
@@ -55,8 +59,7 @@ def add_final_graph(content: dict[str, Any], final: GraphReport, run_dir: Path) 
 
 def main(argv: list[str] | None = None) -> int:
     """``causeway final-graph --run-dir runs/X``: compute a finished run's final graph into its summary."""
-    from services.supervisor.config import RunConfig
-    from services.supervisor.supervisor import run_env_spec, service_configs
+    from services.supervisor.config import load_run_config
 
     p = argparse.ArgumentParser(prog="causeway final-graph", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -65,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     summary_path = args.run_dir / "summary.json"
     try:
         content = json.loads(summary_path.read_text())
-        cfg = RunConfig(**json.loads((args.run_dir / "config.json").read_text()))
+        cfg = load_run_config(args.run_dir)
     except (OSError, ValueError, TypeError) as exc:
         print(f"causeway final-graph: {args.run_dir} is not a finished run: {exc}", file=sys.stderr)
         return 2

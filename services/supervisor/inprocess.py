@@ -22,7 +22,7 @@ from services.graph_evaluator import service as evaluator_service
 from services.intrinsic_reward import service as intrinsic_service
 from services.policy_learner import service as policy_service
 from services.supervisor.config import RunConfig
-from services.supervisor.supervisor import learning_services, resolve, service_configs, worker_config
+from services.supervisor.wiring import learning_services, resolve, service_configs, worker_config
 
 log = logging.getLogger("inprocess")
 

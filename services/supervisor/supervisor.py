@@ -1,123 +1,41 @@
-"""``causeway run``: the embedded default stack, wired in one readable place.
+"""``causeway run``: the embedded default stack.
 
 A Zenoh router runs inside this process (a Python session in router mode on 127.0.0.1, multicast
 scouting off); every service runs as its own OS process connected to it. The supervisor restarts
 crashed services (they resume from their checkpoints), shows live progress from the services' stats
-beats and graph reports, stops on a target F1 or a time/step budget, and writes the run directory.
+beats and graph reports, stops on a target, a time or a step budget, and writes the run directory.
 
-With ``--updates-per-env-step`` the env-step budget does not stop the run at once: the env-workers
-are paused (Control ``pause``, repeated every second so a restarted worker pauses too) and the run
-stops when a graph report comes from weights trained ``CATCH_UP_TOLERANCE`` x ratio x budget updates,
-or after ``--catch-up-timeout-s``. So every collector ends with the same data and the same training,
-however fast it collected.
+The parts, each readable on its own: what runs and what each service is told
+(:mod:`services.supervisor.wiring`), process supervision (:mod:`services.supervisor.processes`),
+when the run stops (:mod:`services.supervisor.stop_rules`), and what the run leaves behind
+(:mod:`services.supervisor.analysis`). This module holds them together around the bus.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import os
 import queue
 import signal
-import subprocess
 import threading
 import time
 from pathlib import Path
 
+from envs.registry import env_entry
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
-from proto.messages import Control, EnvSpec, GraphReport, ServiceStats
-from services.bus.router import free_tcp_port, start_router, wait_for_router
+from proto.messages import Control, GraphReport, ServiceStats
+from services.bus.router import start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
-from services.dashboard.config import DashboardConfig
-from services.dynamics_learner.config import DynamicsLearnerConfig
-from services.env_worker.config import EnvWorkerConfig
-from services.graph_evaluator.config import GraphEvaluatorConfig
-from services.intrinsic_reward.config import IntrinsicRewardConfig
-from services.policy_learner.config import PolicyLearnerConfig
 from services.runtime.config import to_environ, write_config
-from services.supervisor import report as reporting
-from services.supervisor.config import COLLECTORS, INTRINSIC, TASKS, RunConfig
-from services.env_worker.core import env_kwargs
-from services.supervisor.evaluation import CHEMICAL_ENVS, evaluate_run, plot_evaluation
-from services.supervisor.final_graph import add_final_graph, final_graph
+from services.supervisor.analysis import RunRecord, analyse, git_revision
+from services.supervisor.config import RunConfig
 from services.supervisor.processes import FatalServiceError, ManagedProcess, stop_all
 from services.supervisor.progress import Progress
+from services.supervisor.stop_rules import StopRules
+from services.supervisor.wiring import MODULES, learning_services, resolve, service_configs, worker_config
 
 log = logging.getLogger("supervisor")
-CATCH_UP_TOLERANCE = 0.98
-
-
-def resolve(cfg: RunConfig) -> RunConfig:
-    """Fill in the derived defaults: run id, run directory, router port, the task's environment."""
-    if cfg.collector not in COLLECTORS or cfg.intrinsic not in INTRINSIC or cfg.task not in TASKS:
-        raise ValueError(f"collector must be one of {COLLECTORS}, intrinsic one of {INTRINSIC}, "
-                         f"task one of {tuple(TASKS)}; got {cfg.collector!r}, {cfg.intrinsic!r}, {cfg.task!r}")
-    if cfg.intrinsic != "none" and cfg.collector == "random":
-        raise ValueError("an intrinsic reward needs a policy to train: use --collector ppo or sac")
-    cfg = dataclasses.replace(cfg, env=TASKS[cfg.task] or cfg.env)
-    if cfg.collector == "sac" and _discrete_actions(cfg):
-        raise ValueError(f"SAC needs continuous actions; {cfg.env} has discrete ones (use --collector ppo)")
-    run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
-                            f"{cfg.env}-{Path(cfg.graph).stem}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
-    run_id = "".join(c if c.isalnum() or c in "_.-" else "-" for c in run_id)
-    return dataclasses.replace(cfg, run_id=run_id, run_dir=cfg.run_dir or f"runs/{run_id}",
-                               router_port=cfg.router_port or free_tcp_port())
-
-
-def _discrete_actions(cfg: RunConfig) -> bool:
-    from envs import make_env
-
-    probe = worker_config(dataclasses.replace(cfg, metrics_base_port=0), "", 0)
-    return make_env(cfg.env, **env_kwargs(probe)).unwrapped.env_spec().action_kind == "categorical"
-
-
-def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict[str, object]:
-    """The wiring: what each service is told (all of it lands in <run_dir>/config.json)."""
-    common = dict(run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir)
-    port = (lambda offset: cfg.metrics_base_port + offset if cfg.metrics_base_port else 0)
-    learner = DynamicsLearnerConfig(**common, metrics_port=port(1), seed=cfg.seed, lr=cfg.lr,
-                                    lr_decay_updates=cfg.lr_decay_updates, lr_final=cfg.lr_final,
-                                    batch_size=cfg.batch_size, replay_capacity=cfg.replay_capacity,
-                                    feature_hidden=cfg.feature_dim,
-                                    feature_dim=cfg.feature_dim, predictor_hidden=cfg.predictor_hidden,
-                                    cmi_threshold=cfg.cmi_threshold, publish_every_s=cfg.publish_every_s,
-                                    checkpoint_every_s=cfg.checkpoint_every_s,
-                                    updates_per_env_step=cfg.updates_per_env_step)
-    evaluator = GraphEvaluatorConfig(**common, metrics_port=port(2), cmi_threshold=cfg.cmi_threshold,
-                                     min_interval_s=cfg.eval_interval_s, seed=cfg.seed,
-                                     checkpoint_every_s=cfg.checkpoint_every_s)
-    dashboard = DashboardConfig(**common, metrics_port=port(3), http_host="127.0.0.1",
-                                http_port=cfg.dashboard_port, watch_run=cfg.run_id)
-    policy = PolicyLearnerConfig(**common, metrics_port=port(4), algo=cfg.collector if cfg.collector != "random" else "ppo",
-                                 seed=cfg.seed, scored=cfg.intrinsic != "none", max_policy_lag=cfg.max_policy_lag,
-                                 abstraction=cfg.abstraction, intrinsic_coef=cfg.intrinsic_coef,
-                                 skills=cfg.collector == "ppo" and cfg.env == "manipulation", hide=cfg.policy_hide,
-                                 checkpoint_every_s=cfg.checkpoint_every_s)
-    intrinsic = IntrinsicRewardConfig(**common, metrics_port=port(5),
-                                      reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff")
-    return {"dynamics-learner": learner, "graph-evaluator": evaluator, "dashboard": dashboard,
-            "policy-learner": policy, "intrinsic-reward": intrinsic,
-            "env-worker": worker_config(cfg, connect, worker_index)}
-
-
-def learning_services(cfg: RunConfig) -> tuple[str, ...]:
-    """The services besides env-workers and dashboard that ``cfg`` asks for."""
-    return (("dynamics-learner", "graph-evaluator") + (("policy-learner",) if cfg.collector != "random" else ())
-            + (("intrinsic-reward",) if cfg.intrinsic != "none" else ()))
-
-
-def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
-    port = cfg.metrics_base_port + 10 + index if cfg.metrics_base_port else 0
-    return EnvWorkerConfig(run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir, metrics_port=port,
-                           instance=str(index), env=cfg.env, graph=cfg.graph, num_objects=cfg.num_objects,
-                           cpt_seed=cfg.cpt_seed, seed=cfg.seed, worker_index=index,
-                           max_steps_per_second=cfg.steps_per_second, follow_policy=cfg.collector != "random")
-
-
-MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
-           "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard",
-           "policy-learner": "services.policy_learner", "intrinsic-reward": "services.intrinsic_reward"}
 
 
 class Supervisor:
@@ -142,8 +60,7 @@ class Supervisor:
         self.failure = ""
         self.policy_timeline: list[tuple[float, str, str, float]] = []
         """(seconds since start, service, instance, policy version) whenever a version changes."""
-        self.budget_reached_at: float | None = None
-        self._last_pause = -1e9
+        self.stop_rules = StopRules(self.cfg, self._pause_workers)
 
     @property
     def dashboard_url(self) -> str | None:
@@ -227,7 +144,7 @@ class Supervisor:
 
     def _write_run_config(self) -> None:
         write_config(self.cfg, self.run_dir / "config.json")
-        (self.run_dir / "git_revision").write_text(_git_revision() + "\n")
+        (self.run_dir / "git_revision").write_text(git_revision() + "\n")
 
     def _on_stats(self, key: str, payload: bytes) -> None:
         try:
@@ -293,34 +210,14 @@ class Supervisor:
         self._stop.set()
 
     def _check_budget(self, elapsed: float) -> None:
-        cfg = self.cfg
-        report = self.last_report
-        if cfg.target_f1 and report is not None and report.metrics.get(cfg.target_metric, 0.0) >= cfg.target_f1:
-            self.request_stop(f"target {cfg.target_metric} {cfg.target_f1} reached")
-        elif cfg.max_env_steps and self.progress.env_steps() >= cfg.max_env_steps:
-            if cfg.updates_per_env_step > 0:
-                self._catch_up(elapsed)
-            else:
-                self.request_stop(f"env step budget {cfg.max_env_steps} reached")
-        if cfg.max_seconds and elapsed >= cfg.max_seconds:
-            self.request_stop(f"time budget {cfg.max_seconds:.0f}s reached")
+        with self._lock:
+            report = self.last_report
+        reason = self.stop_rules.check(elapsed, report, self.progress.env_steps())
+        if reason:
+            self.request_stop(reason)
 
-    def _catch_up(self, elapsed: float) -> None:
-        """Env-step budget reached with a ratio set: keep the env-workers paused until the graph
-        reflects a learner that made its share of updates (or the catch-up timeout passes)."""
-        cfg = self.cfg
-        if self.budget_reached_at is None:
-            self.budget_reached_at = elapsed
-            log.warning("env step budget %d reached: env-workers paused until the learner catches up", cfg.max_env_steps)
-        if elapsed - self._last_pause >= 1.0:
-            self._last_pause = elapsed
-            self.bus.publish(topics.control(cfg.run_id, "env-worker"), encode(Control("pause", issued_at=time.time())))
-        report = self.last_report
-        if learner_caught_up(report, cfg.updates_per_env_step, cfg.max_env_steps):
-            self.request_stop(f"env step budget {cfg.max_env_steps} reached, learner caught up ({report.updates} updates)")
-        elif elapsed - self.budget_reached_at >= cfg.catch_up_timeout_s:
-            self.request_stop(f"env step budget {cfg.max_env_steps} reached, learner did not catch up "
-                              f"in {cfg.catch_up_timeout_s:.0f}s")
+    def _pause_workers(self) -> None:
+        self.bus.publish(topics.control(self.cfg.run_id, "env-worker"), encode(Control("pause", issued_at=time.time())))
 
     def restarts(self) -> int:
         return sum(p.restarts for p in self.processes.values())
@@ -339,109 +236,20 @@ class Supervisor:
             self.router.close()
 
     def finish(self, wall_seconds: float) -> dict:
+        """summary.json, the final graph, the evaluation and the plots (:mod:`services.supervisor.analysis`)."""
         cfg = self.cfg
+        budget_at = self.stop_rules.budget_reached_at
+        facts = {"run_id": cfg.run_id, "env": cfg.env, "method": cfg.method,
+                 "graph": cfg.env_options.graph if "graph" in env_entry(cfg.env).options else None,
+                 "num_objects": cfg.env_options.num_objects, "seed": cfg.seed, "workers": cfg.workers,
+                 "env_steps": self.progress.env_steps(), "updates": self.progress.updates(),
+                 "wall_seconds": round(wall_seconds, 1), "stopped_because": self.stop_reason or "stopped",
+                 "restarts": self.restarts(),
+                 "catch_up_seconds": round(wall_seconds - budget_at, 1) if budget_at is not None else 0.0,
+                 "git_revision": git_revision()}
         with self._lock:
-            report, history = self.last_report, list(self.history)
-        base = {"run_id": cfg.run_id, "env": cfg.env, "graph": cfg.graph if cfg.env.startswith("chemical") else None, "num_objects": cfg.num_objects,
-                "seed": cfg.seed, "workers": cfg.workers, "env_steps": self.progress.env_steps(),
-                "updates": self.progress.updates(), "wall_seconds": round(wall_seconds, 1),
-                "stopped_because": self.stop_reason or "stopped", "restarts": self.restarts(),
-                "catch_up_seconds": (round(wall_seconds - self.budget_reached_at, 1)
-                                     if self.budget_reached_at is not None else 0.0),
-                "git_revision": _git_revision()}
-        content = reporting.summary(report, base, history)
-        final = self._final_graph() if report is not None and cfg.evaluate and not self.failure else None
-        if cfg.collector != "random":
-            with self._lock:
-                stats = {ident: dict(s.values) for ident, s in self.progress.stats.items()}
-                content["policy"] = reporting.policy_summary(stats, list(self.policy_timeline))
-            reporting.plot_policy(content["policy"], self.run_dir / "policy.png")
-        if report is not None and cfg.evaluate and cfg.env in CHEMICAL_ENVS and not self.failure:
-            content["evaluation"] = self._evaluate(report)
-        if report is not None:
-            reporting.plot_graphs(report, self.run_dir / "graph.png")
-            reporting.plot_object_graphs(report, self.run_dir / "object_graph.png")
-            reporting.plot_learning_curve(history, self.run_dir / "learning_curve.png")
-        if final is not None:
-            add_final_graph(content, final, self.run_dir)
-        reporting.write_summary(self.run_dir / "summary.json", content)
-        if "prediction" in content.get("evaluation", {}):
-            plot_evaluation(content["evaluation"], self.run_dir / "evaluation.png")
-        return content
-
-    def _final_graph(self) -> GraphReport | None:
-        """The final model's graph on all held-out data (services.supervisor.final_graph); a failure
-        is logged and leaves the summary with the live reports only."""
-        cfg = self.cfg
-        self.progress.stream.write("final graph: CMI of the final model on every held-out transition ...\n")
-        try:
-            final = final_graph(self.run_dir, service_configs(cfg, self.connect)["graph-evaluator"], run_env_spec(cfg))
-        except Exception:  # noqa: BLE001 - the run itself is done
-            log.exception("final graph evaluation failed")
-            return None
-        if final is not None:
-            self.progress.stream.write(f"final graph: {final.num_heldout:,} held-out transitions, "
-                                       f"{reporting.score_line(final.metrics)}\n")
-        return final
-
-    def _evaluate(self, report: GraphReport) -> dict:
-        """Chapter 3's evaluations on this run's final models (see services.supervisor.evaluation);
-        a failure is recorded in the summary, never raised: the run itself is done."""
-        cfg = self.cfg
-        configs = service_configs(cfg, self.connect)
-        self.progress.stream.write("evaluating the run's model (prediction ID/OOD"
-                                   + (", Match" if cfg.task == "match" else "") + ") ...\n")
-        try:
-            policy = load_policy(self.run_dir, configs["policy-learner"], cfg) if cfg.collector != "random" else None
-            return evaluate_run(self.run_dir, cfg.env, env_kwargs(configs["env-worker"]), report, policy)
-        except Exception as exc:  # noqa: BLE001 - reported in the summary
-            log.exception("post-run evaluation failed")
-            return {"error": f"{type(exc).__name__}: {exc}"}
-
-
-def learner_caught_up(report: GraphReport | None, ratio: float, max_env_steps: int) -> bool:
-    """Whether ``report`` scores weights trained for (about) ``ratio`` x ``max_env_steps`` updates.
-
-    The learner never exceeds its ratio of the steps it ingested, so such weights have also seen
-    (about) the whole budget."""
-    return report is not None and report.updates >= CATCH_UP_TOLERANCE * ratio * max_env_steps
-
-
-def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig, deterministic: bool = True):
-    """The policy-learner's last checkpointed policy as ``obs -> action`` (the mode, or sampled), or None.
-    A policy over skills (``policy_cfg.skills``) returns the option to run next."""
-    from services.policy_learner.core import PolicyLearnerCore
-
-    path = run_dir / "checkpoints" / "policy-learner-0.pt"
-    if not path.exists():
-        return None
-    core = PolicyLearnerCore(policy_cfg, run_env_spec(cfg))
-    core.restore(path)
-    return lambda obs: core.agent.act(obs, deterministic=deterministic)
-
-
-def run_env_spec(cfg: RunConfig) -> EnvSpec:
-    """The EnvSpec of the run's environment, as its first env-worker builds it."""
-    from envs import make_env
-
-    return make_env(cfg.env, **env_kwargs(worker_config(cfg, "", 0))).unwrapped.env_spec()
-
-
-def _git_revision() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def print_summary(content: dict) -> None:
-    keys = ("env", "graph", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
-            "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
-    shown = {k: content.get(k) for k in keys}
-    if "final_graph" in content:
-        final = content["final_graph"]
-        shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "accuracy", "f1", "best_threshold_f1",
-                                                          "with_self_best_threshold_f1",
-                                                          "with_self_best_threshold_accuracy")}
-    print(json.dumps(shown, indent=1))
+            record = RunRecord(facts, self.last_report, list(self.history), failure=self.failure,
+                               policy_timeline=list(self.policy_timeline))
+            if cfg.collector != "random":
+                record.policy_stats = {ident: dict(s.values) for ident, s in self.progress.stats.items()}
+        return analyse(cfg, self.run_dir, record, self.progress.stream)

@@ -12,7 +12,7 @@ from causal.cdl import CDLConfig, CDLModel, model_config_json
 from causal.factored import FactorLayout
 from envs.manipulation_layout import FACTOR_NAMES, NUM_FACTORS
 from services.runtime.checkpoint import save_checkpoint
-from services.supervisor.evaluation import load_cdl
+from services.supervisor.evaluation import load_model
 
 LAYOUT = FactorLayout(names=FACTOR_NAMES, kinds=("continuous",) * NUM_FACTORS, sizes=(1,) * NUM_FACTORS,
                       locs=(0.0,) * NUM_FACTORS, scales=(0.1,) * NUM_FACTORS, action_kind="continuous",
@@ -26,7 +26,7 @@ def test_load_cdl_rebuilds_the_checkpointed_model(tmp_path) -> None:
     fingerprint = json.dumps({"env": "manipulation", "model": json.loads(model_config_json(LAYOUT, CFG))})
     save_checkpoint({"fingerprint": fingerprint, "trainer": {"model": model.state_dict()}},
                     tmp_path / "checkpoints" / "dynamics-learner-0.pt")
-    loaded = load_cdl(tmp_path)
+    loaded = load_model(tmp_path)
     for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
         torch.testing.assert_close(a, b, msg=name)
     assert not loaded.training
@@ -58,7 +58,7 @@ def _run_dir(tmp_path, collector: str, bias_option: int | None = None):
     from envs import make_env
     from services.policy_learner.core import PolicyLearnerCore
     from services.supervisor.config import RunConfig
-    from services.supervisor.supervisor import service_configs
+    from services.supervisor.wiring import service_configs
 
     cfg = RunConfig(env="manipulation", collector=collector, intrinsic="preddiff" if collector == "ppo" else "none")
     tmp_path.mkdir(parents=True)

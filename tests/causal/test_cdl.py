@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from causal.cdl import CDLConfig, CDLModel, export_tensors, import_tensors, model_config_json, model_from_config_json
+from causal.cdl import CDLConfig, CDLModel, model_config_json, model_from_config_json
+from causal.method import export_tensors, import_tensors
 from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
 from causal.graph_metrics import score_graph

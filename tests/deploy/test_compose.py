@@ -105,13 +105,23 @@ def test_manipulation_with_ppo_over_skills_is_two_variables_away(compose: dict[s
 
 @integration
 def test_learning_rate_decay_is_one_variable_away(compose: dict[str, Any]) -> None:
-    assert compose["services"]["dynamics-learner"]["environment"]["CAUSEWAY_LR_DECAY_UPDATES"] == "0"
-    result = _compose_config(CAUSEWAY_LR_DECAY_UPDATES="30000")
+    assert compose["services"]["dynamics-learner"]["environment"]["CAUSEWAY_CDL_LR_DECAY_UPDATES"] == "0"
+    result = _compose_config(CAUSEWAY_CDL_LR_DECAY_UPDATES="30000")
     assert result.returncode == 0, result.stderr
     learner = load_yaml(result.stdout)["services"]["dynamics-learner"]["environment"]
-    assert learner["CAUSEWAY_LR_DECAY_UPDATES"] == "30000"
+    assert learner["CAUSEWAY_CDL_LR_DECAY_UPDATES"] == "30000"
     cfg = parse_config(DynamicsLearnerConfig, [], {k: str(v) for k, v in learner.items()})
-    assert cfg.cdl().lr_decay_updates == 30000
+    assert cfg.models.cdl.lr_decay_updates == 30000
+
+
+@integration
+def test_every_service_runs_the_same_method(compose: dict[str, Any]) -> None:
+    result = _compose_config(CAUSEWAY_METHOD="cdl")
+    assert result.returncode == 0, result.stderr
+    services = load_yaml(result.stdout)["services"]
+    methods = {name: svc["environment"].get("CAUSEWAY_METHOD") for name, svc in services.items()
+               if "environment" in svc and "CAUSEWAY_RUN_ID" in svc["environment"]}
+    assert set(methods.values()) == {"cdl"} and {"dynamics-learner", "graph-evaluator", "env-worker"} <= set(methods)
 
 
 @integration

@@ -52,8 +52,8 @@ class Watcher:
 def start_stack(tmp_path: Path, port: int, metrics: int) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "services.cli", "run", "--graph", "collider", "--num-objects", "3",
            "--max-seconds", "240", "--router-port", str(port), "--metrics-base-port", str(metrics),
-           "--run-dir", str(tmp_path / "run"), "--checkpoint-every-s", "2", "--eval-interval-s", "1",
-           "--publish-every-s", "1", "--progress", "false", "--steps-per-second", "1000",
+           "--run-dir", str(tmp_path / "run"), "--checkpoint-every-s", "2", "--evaluator-min-interval-s", "1",
+           "--learner-publish-every-s", "1", "--progress", "false", "--worker-max-steps-per-second", "1000",
            "--dashboard-port", str(free_tcp_port())]
     return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 

@@ -20,6 +20,7 @@ import pytest
 from proto import topics
 from proto.codec import decode, encode
 from proto.messages import ServiceStats, TransitionBatch
+from services.runtime.config import build_config
 from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from services.env_worker.config import EnvWorkerConfig
@@ -73,7 +74,7 @@ def test_late_worker_catches_up_at_once_and_follows_new_versions(tmp_path: Path)
     router = start_router(connect)
     wait_for_router(connect)
     bus = ZenohTransport(connect)
-    worker_cfg = EnvWorkerConfig(run_id=RUN, zenoh_connect=connect, run_dir=str(tmp_path), metrics_port=metrics_port,
+    worker_cfg = build_config(EnvWorkerConfig, run_id=RUN, zenoh_connect=connect, run_dir=str(tmp_path), metrics_port=metrics_port,
                                  num_objects=3, batch_steps=64, max_steps_per_second=1000, follow_policy=True)
     learner = PolicyLearnerCore(PolicyLearnerConfig(hidden=16), EnvWorkerCore(worker_cfg).spec)
     latest = bus.serve_latest(topics.weights(RUN, "policy"))

@@ -48,8 +48,8 @@ def test_prometheus_scrapes_the_local_stack(tmp_path: Path) -> None:
     stack = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "run", "--graph", "chain", "--num-objects", "3", "--max-seconds", "180",
          "--router-port", str(free_tcp_port()), "--metrics-base-port", str(base), "--dashboard-port", "0",
-         "--run-dir", str(tmp_path / "run"), "--eval-interval-s", "1", "--publish-every-s", "1",
-         "--progress", "false", "--steps-per-second", "1000", "--workers", "2"],
+         "--run-dir", str(tmp_path / "run"), "--evaluator-min-interval-s", "1", "--learner-publish-every-s", "1",
+         "--progress", "false", "--worker-max-steps-per-second", "1000", "--workers", "2"],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     prom_port = free_tcp_port()
     config = tmp_path / "prometheus.yml"

@@ -39,9 +39,9 @@ def wait_for(predicate: Callable[[], T], timeout: float, what: str, interval: fl
 
 def start_stack(run_dir: Path, port: int) -> subprocess.Popen[str]:
     cmd = [sys.executable, "-m", "services.cli", "run", "--graph", "chain", "--num-objects", "3", "--workers", "1",
-           "--router-port", str(port), "--metrics-base-port", "0", "--steps-per-second", "500", "--progress", "false",
+           "--router-port", str(port), "--metrics-base-port", "0", "--worker-max-steps-per-second", "500", "--progress", "false",
            "--run-dir", str(run_dir), "--max-seconds", "240", "--checkpoint-every-s", "600",
-           "--eval-interval-s", "1", "--publish-every-s", "1", "--dashboard-port", "0"]
+           "--evaluator-min-interval-s", "1", "--learner-publish-every-s", "1", "--dashboard-port", "0"]
     return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 

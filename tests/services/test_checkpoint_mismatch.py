@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import pytest
 
+from services.runtime.config import build_config
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import DynamicsLearnerCore
 from services.env_worker.config import EnvWorkerConfig
@@ -13,16 +14,16 @@ from services.runtime.checkpoint import CheckpointMismatch
 
 
 def spec(graph: str):
-    return EnvWorkerCore(EnvWorkerConfig(graph=graph, num_objects=3)).spec
+    return EnvWorkerCore(build_config(EnvWorkerConfig, graph=graph, num_objects=3)).spec
 
 
 def test_learner_refuses_another_model_or_env(tmp_path) -> None:
     path = tmp_path / "learner.pt"
-    small = DynamicsLearnerConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)
+    small = build_config(DynamicsLearnerConfig, cdl_feature_hidden=8, cdl_feature_dim=8, cdl_predictor_hidden=8)
     DynamicsLearnerCore(small, spec("chain")).checkpoint(path)
     assert DynamicsLearnerCore(small, spec("chain")).restore(path)
     with pytest.raises(CheckpointMismatch, match="different environment or model"):
-        DynamicsLearnerCore(DynamicsLearnerConfig(feature_hidden=16, feature_dim=8, predictor_hidden=8),
+        DynamicsLearnerCore(build_config(DynamicsLearnerConfig, cdl_feature_hidden=16, cdl_feature_dim=8, cdl_predictor_hidden=8),
                             spec("chain")).restore(path)
     with pytest.raises(CheckpointMismatch):
         DynamicsLearnerCore(small, spec("collider")).restore(path)
@@ -30,9 +31,9 @@ def test_learner_refuses_another_model_or_env(tmp_path) -> None:
 
 def test_learner_resumes_under_another_learning_rate_schedule(tmp_path) -> None:
     path = tmp_path / "learner.pt"
-    small = dict(feature_hidden=8, feature_dim=8, predictor_hidden=8)
-    DynamicsLearnerCore(DynamicsLearnerConfig(**small), spec("chain")).checkpoint(path)
-    decayed = DynamicsLearnerCore(DynamicsLearnerConfig(**small, lr_decay_updates=500, lr_final=2e-4), spec("chain"))
+    small = dict(cdl_feature_hidden=8, cdl_feature_dim=8, cdl_predictor_hidden=8)
+    DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small), spec("chain")).checkpoint(path)
+    decayed = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small, cdl_lr_decay_updates=500, cdl_lr_final=2e-4), spec("chain"))
     assert decayed.restore(path) and decayed.trainer.lr == decayed.trainer.cfg.lr_at(0)
 
 

@@ -8,7 +8,10 @@ import pytest
 
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.env_worker.config import EnvWorkerConfig
-from services.runtime.config import parse_config, to_environ, write_config
+from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.intrinsic_reward.config import IntrinsicRewardConfig
+from services.policy_learner.config import PolicyLearnerConfig
+from services.runtime.config import build_config, config_from_dict, flags, parse_config, to_environ, write_config
 from services.supervisor.config import RunConfig
 
 
@@ -17,25 +20,67 @@ def test_defaults_env_then_flags() -> None:
     assert cfg == EnvWorkerConfig()
     cfg = parse_config(EnvWorkerConfig, ["--graph", "chain", "--local-graphs", "true"],
                        {"CAUSEWAY_GRAPH": "collider", "CAUSEWAY_NUM_OBJECTS": "4"})
-    assert cfg.graph == "chain" and cfg.num_objects == 4 and cfg.local_graphs is True
+    assert cfg.env_options.graph == "chain" and cfg.env_options.num_objects == 4 and cfg.local_graphs is True
 
 
 def test_environ_round_trip_for_every_service_config() -> None:
-    for cls in (EnvWorkerConfig, DynamicsLearnerConfig, RunConfig):
+    for cls in (EnvWorkerConfig, DynamicsLearnerConfig, RunConfig, GraphEvaluatorConfig, PolicyLearnerConfig,
+                IntrinsicRewardConfig):
         original = dataclasses.replace(cls(), run_id="abc") if hasattr(cls(), "run_id") else cls()
         assert parse_config(cls, [], to_environ(original)) == original
 
 
-def test_bad_values_are_clear_errors() -> None:
-    with pytest.raises(SystemExit, match="CAUSEWAY_NUM_OBJECTS"):
+def test_bad_values_are_clear_errors(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
         parse_config(EnvWorkerConfig, [], {"CAUSEWAY_NUM_OBJECTS": "ten"})
+    assert exit_.value.code == 2 and "CAUSEWAY_NUM_OBJECTS" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         parse_config(EnvWorkerConfig, ["--num-objects", "ten"], {})
 
 
-def test_write_config(tmp_path) -> None:
-    write_config(RunConfig(graph="chain"), tmp_path / "c.json")
-    assert json.loads((tmp_path / "c.json").read_text())["graph"] == "chain"
+@pytest.mark.parametrize("argv,environ,message", [
+    (["--env", "nope"], {}, "--env: invalid choice 'nope' (choose from 'chemical'"),
+    ([], {"CAUSEWAY_METHOD": "nope"}, "--method: invalid choice 'nope' (choose from 'cdl'"),
+    (["--target-metric", "nope"], {}, "invalid choice 'nope' (choose from 'accuracy'"),
+    (["--collector", "dqn"], {}, "choose from 'random', 'ppo', 'sac'"),
+    (["--intrinsic", "nope"], {}, "choose from 'none', 'preddiff'"),
+    (["--task", "nope"], {}, "choose from '', 'match'"),
+    (["--cdl-lr", "nan"], {}, "lr must be a positive finite number, got nan"),
+    (["--cdl-batch-size", "0"], {}, "batch_size must be >= 1"),
+    (["--learner-replay-capacity", "0"], {}, "replay_capacity must be >= 1"),
+    (["--workers", "-1"], {}, "workers must be >= 1"),
+    (["--lr", "0.1"], {}, "unrecognized arguments: --lr"),  # no abbreviations, no old names
+])
+def test_enumerations_and_ranges_are_refused_before_anything_starts(argv, environ, message, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        parse_config(RunConfig, argv, environ, prog="causeway run")
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_sections_compose_service_and_method_settings_as_prefixed_flags() -> None:
+    cfg = parse_config(RunConfig, ["--cdl-lr", "1e-3", "--learner-replay-capacity", "7", "--policy-hide", "mk",
+                                   "--graph", "chain"], {"CAUSEWAY_EVALUATOR_MIN_INTERVAL_S": "9"})
+    assert cfg.models.cdl.lr == 1e-3 and cfg.learner.replay_capacity == 7 and cfg.policy.hide == "mk"
+    assert cfg.env_options.graph == "chain" and cfg.evaluator.min_interval_s == 9.0
+    assert RunConfig().learner.publish_every_s == 5.0 != DynamicsLearnerConfig().publish_every_s  # the run's default
+    names = {flag.name for flag in flags(RunConfig)}
+    assert {"learner-seed", "learner-run-id", "worker-env", "policy-algo", "intrinsic-reward"}.isdisjoint(names)
+    assert build_config(RunConfig, graph="chain", cdl_lr=1e-3, policy_hide="mk") == parse_config(
+        RunConfig, ["--graph", "chain", "--cdl-lr", "0.001", "--policy-hide", "mk"], {})
+    with pytest.raises(TypeError, match="no setting lr"):
+        build_config(RunConfig, lr=1e-3)
+
+
+def test_write_config_and_read_it_back(tmp_path) -> None:
+    cfg = build_config(RunConfig, graph="chain", cdl_lr=1e-3, learner_replay_capacity=9)
+    write_config(cfg, tmp_path / "c.json")
+    data = json.loads((tmp_path / "c.json").read_text())
+    assert data["env_options"]["graph"] == "chain" and data["models"]["cdl"]["lr"] == 1e-3
+    assert config_from_dict(RunConfig, data) == cfg
+    # a run directory written before settings moved into sections: same-named flags are recognised
+    old = config_from_dict(RunConfig, {"graph": "collider", "num_objects": 4, "lr": 0.5, "env": "chemical"})
+    assert (old.env_options.graph, old.env_options.num_objects, old.models.cdl.lr) == ("collider", 4, 3e-3)
 
 
 def test_progress_totals_survive_a_restarted_counter() -> None:

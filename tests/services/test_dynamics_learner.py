@@ -9,20 +9,23 @@ import pytest
 
 from proto.codec import decode
 from proto.messages import Control, ServiceStats
+from services.runtime.config import build_config
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import DynamicsLearnerCore
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.runtime.config import parse_config
 from services.supervisor.config import RunConfig
-from services.supervisor.supervisor import Supervisor, learner_caught_up, service_configs
+from services.supervisor.stop_rules import learner_caught_up
+from services.supervisor.supervisor import Supervisor
+from services.supervisor.wiring import service_configs
 
-SMALL = dict(feature_hidden=8, feature_dim=8, predictor_hidden=8, batch_size=16, warmup_steps=100)
+SMALL = dict(cdl_feature_hidden=8, cdl_feature_dim=8, cdl_predictor_hidden=8, cdl_batch_size=16, warmup_steps=100)
 
 
 def learner_and_worker(ratio: float) -> tuple[DynamicsLearnerCore, EnvWorkerCore]:
-    worker = EnvWorkerCore(EnvWorkerConfig(graph="chain", num_objects=3, batch_steps=256))
-    return DynamicsLearnerCore(DynamicsLearnerConfig(**SMALL, updates_per_env_step=ratio), worker.spec), worker
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, graph="chain", num_objects=3, batch_steps=256))
+    return DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **SMALL, updates_per_env_step=ratio), worker.spec), worker
 
 
 def train_while_allowed(core: DynamicsLearnerCore, limit: int = 1_000) -> int:
@@ -60,21 +63,21 @@ def test_resume_keeps_the_ratio(tmp_path) -> None:
 
 
 def test_run_flag_reaches_the_learner() -> None:
-    cfg = parse_config(RunConfig, ["--updates-per-env-step", "0.01", "--catch-up-timeout-s", "30"], {})
-    assert (cfg.updates_per_env_step, cfg.catch_up_timeout_s) == (0.01, 30.0)
+    cfg = parse_config(RunConfig, ["--learner-updates-per-env-step", "0.01", "--catch-up-timeout-s", "30"], {})
+    assert (cfg.learner.updates_per_env_step, cfg.catch_up_timeout_s) == (0.01, 30.0)
     assert service_configs(cfg, "tcp/x:1")["dynamics-learner"].updates_per_env_step == 0.01
     assert service_configs(RunConfig(), "tcp/x:1")["dynamics-learner"].updates_per_env_step == 0.0
 
 
 def test_learning_rate_schedule_flags_reach_the_model() -> None:
-    cfg = parse_config(RunConfig, ["--lr-decay-updates", "30000", "--lr-final", "2e-4"], {})
-    cdl = service_configs(cfg, "tcp/x:1")["dynamics-learner"].cdl()
+    cfg = parse_config(RunConfig, ["--cdl-lr-decay-updates", "30000", "--cdl-lr-final", "2e-4"], {})
+    cdl = service_configs(cfg, "tcp/x:1")["dynamics-learner"].models.cdl
     assert (cdl.lr_decay_updates, cdl.lr_final) == (30000, 2e-4)
-    assert cdl.lr_at(30000) == pytest.approx(2e-4) and cdl.lr_at(0) == pytest.approx(cfg.lr)
+    assert cdl.lr_at(30000) == pytest.approx(2e-4) and cdl.lr_at(0) == pytest.approx(cfg.models.cdl.lr)
 
 
 def test_replay_capacity_flag_reaches_the_learner() -> None:
-    cfg = parse_config(RunConfig, ["--replay-capacity", "1000000"], {})
+    cfg = parse_config(RunConfig, ["--learner-replay-capacity", "1000000"], {})
     learner = service_configs(cfg, "tcp/x:1")["dynamics-learner"]
     assert learner.replay_capacity == 1_000_000
     assert service_configs(RunConfig(), "tcp/x:1")["dynamics-learner"].replay_capacity == 200_000
@@ -89,8 +92,9 @@ class _RecordingBus:
 
 
 def supervisor(tmp_path, ratio: float) -> Supervisor:
-    sup = Supervisor(RunConfig(router_port=7447, run_dir=str(tmp_path), max_env_steps=10_000,
-                               updates_per_env_step=ratio, catch_up_timeout_s=60, max_seconds=0, progress=False))
+    sup = Supervisor(build_config(RunConfig, router_port=7447, run_dir=str(tmp_path), max_env_steps=10_000,
+                                  learner_updates_per_env_step=ratio, catch_up_timeout_s=60, max_seconds=0,
+                                  progress=False))
     sup.bus = _RecordingBus()
     sup.progress.on_stats(ServiceStats("env-worker", "0", {"env_steps": 10_240.0}))
     return sup

@@ -6,12 +6,13 @@ import dataclasses
 import numpy as np
 
 from proto.codec import check_fits, decode, encode
+from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore, resolve_worker_index
 
 
 def test_batches_fit_the_spec_and_round_trip() -> None:
-    core = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=120, local_graphs=True))
+    core = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=120, local_graphs=True))
     batch = core.collect()
     check_fits(core.spec, batch)
     assert len(batch) == 120 and batch.seq == 0 and core.collect().seq == 1
@@ -24,16 +25,16 @@ def test_batches_fit_the_spec_and_round_trip() -> None:
 
 
 def test_worker_seeds_are_seed_plus_index() -> None:
-    a = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=64, seed=1, worker_index=1)).collect()
-    b = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=64, seed=2, worker_index=0)).collect()
-    c = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=64, seed=1, worker_index=0)).collect()
+    a = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=64, seed=1, worker_index=1)).collect()
+    b = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=64, seed=2, worker_index=0)).collect()
+    c = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=64, seed=1, worker_index=0)).collect()
     assert np.array_equal(a.next_state, b.next_state) and np.array_equal(a.action, b.action)
     assert not np.array_equal(a.action, c.action)
 
 
 def test_replicas_derive_distinct_indices_from_hostname(monkeypatch) -> None:
     import socket
-    cfg = EnvWorkerConfig(worker_index=-1)
+    cfg = build_config(EnvWorkerConfig, worker_index=-1)
     monkeypatch.setattr(socket, "gethostname", lambda: "causeway-env-worker-1")
     one = resolve_worker_index(cfg)
     monkeypatch.setattr(socket, "gethostname", lambda: "causeway-env-worker-2")

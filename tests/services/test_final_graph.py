@@ -6,6 +6,7 @@ import json
 import numpy as np
 import torch
 
+from services.runtime.config import build_config
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import DynamicsLearnerCore
 from services.env_worker.config import EnvWorkerConfig
@@ -18,9 +19,9 @@ from services.supervisor.final_graph import add_final_graph, final_graph
 
 def test_final_graph_scores_the_last_checkpoint_on_every_heldout_transition(tmp_path) -> None:
     torch.set_num_threads(1)
-    worker = EnvWorkerCore(EnvWorkerConfig(graph="chain", num_objects=3, batch_steps=500))
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, graph="chain", num_objects=3, batch_steps=500))
     spec = worker.spec
-    learner = DynamicsLearnerCore(DynamicsLearnerConfig(warmup_steps=200), spec)
+    learner = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, warmup_steps=200), spec)
     evaluator_cfg = GraphEvaluatorConfig(min_heldout=50, eval_samples=50)
     evaluator = GraphEvaluatorCore(evaluator_cfg, spec)
     for _ in range(6):
@@ -55,7 +56,7 @@ def test_final_graph_scores_the_last_checkpoint_on_every_heldout_transition(tmp_
 
 
 def test_final_graph_needs_both_checkpoints(tmp_path) -> None:
-    spec = EnvWorkerCore(EnvWorkerConfig(graph="chain", num_objects=3)).spec
+    spec = EnvWorkerCore(build_config(EnvWorkerConfig, graph="chain", num_objects=3)).spec
     assert final_graph(tmp_path, GraphEvaluatorConfig(), spec) is None
 
 

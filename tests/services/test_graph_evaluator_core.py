@@ -6,6 +6,7 @@ import numpy as np
 from envs.manipulation_layout import CONSTANT_FACTORS, FACTOR_NAMES, FACTOR_OBJECTS
 from envs.manipulation_truth import global_graph
 from proto.messages import EnvSpec, Weights
+from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.graph_evaluator.config import GraphEvaluatorConfig
@@ -23,7 +24,7 @@ def _manipulation_spec() -> EnvSpec:
 
 def _report_metrics(spec: EnvSpec, cmi: np.ndarray) -> dict[str, float]:
     core = GraphEvaluatorCore(GraphEvaluatorConfig(), spec)
-    core.cmi_ema = cmi.astype(np.float32)
+    core.cmi_ema, core.threshold = cmi.astype(np.float32), 0.02
     core.weights = Weights(model="cdl", version=1, config_json="{}", env_steps=10, updates=1)
     return core.report(num_heldout=100).metrics
 
@@ -45,7 +46,7 @@ def test_manipulation_reports_score_the_identifiable_edges_apart() -> None:
 
 
 def test_chemical_reports_identical_identifiable_scores() -> None:
-    spec = EnvWorkerCore(EnvWorkerConfig(graph="chain", num_objects=3)).spec
+    spec = EnvWorkerCore(build_config(EnvWorkerConfig, graph="chain", num_objects=3)).spec
     assert constant_factor_indices(spec) == ()
     rng = np.random.default_rng(0)
     m = _report_metrics(spec, rng.uniform(0, 0.05, spec.global_graph.shape))
@@ -64,10 +65,11 @@ def test_cmi_average_keeps_the_reference_memory_per_learner_update() -> None:
 def test_evaluations_average_cmi_by_updates_and_resume(tmp_path) -> None:
     import torch
 
-    from causal.cdl import CDLConfig, CDLModel, export_tensors, model_config_json
+    from causal.cdl import CDLConfig, CDLModel, model_config_json
+    from causal.method import export_tensors
     from causal.factored import FactorLayout
 
-    spec = EnvWorkerCore(EnvWorkerConfig(graph="chain", num_objects=3)).spec
+    spec = EnvWorkerCore(build_config(EnvWorkerConfig, graph="chain", num_objects=3)).spec
     cfg = GraphEvaluatorConfig(min_heldout=64, eval_samples=64, cmi_ema=0.99)
     core = GraphEvaluatorCore(cfg, spec)
     rng = np.random.default_rng(0)
@@ -76,6 +78,7 @@ def test_evaluations_average_cmi_by_updates_and_resume(tmp_path) -> None:
     core.heldout.add(state, rng.integers(0, 15, (batch_rows, 1)).astype(np.float32), state)
     layout = FactorLayout.from_spec(spec)
     estimates = []
+    torch.manual_seed(0)
     for version, updates in ((1, 100), (2, 150)):
         model = CDLModel(layout, CDLConfig())
         core.load_weights(Weights(model="cdl", version=version, config_json=model_config_json(layout, CDLConfig()),
@@ -87,8 +90,12 @@ def test_evaluations_average_cmi_by_updates_and_resume(tmp_path) -> None:
         estimates.append((before, fresh, core.cmi_ema.copy()))
     before, fresh, after = estimates[1]
     weight = 0.99 ** 50
-    assert np.allclose(after, weight * before + (1 - weight) * fresh, atol=1e-6)
-    assert np.allclose(estimates[0][2], estimates[0][1], atol=1e-6)  # the first estimate is taken as is
+    # An untrained model's CMI reaches ~1e5 nats, and the evaluator sums the same rows in another order:
+    # float32 rounding is relative to the magnitude, so is the tolerance.
+    expected = weight * before + (1 - weight) * fresh
+    np.testing.assert_allclose(after, expected, rtol=1e-4, atol=1e-6 * max(1.0, float(np.abs(expected).max())))
+    first = estimates[0][1]  # the first estimate is taken as is
+    np.testing.assert_allclose(estimates[0][2], first, rtol=1e-4, atol=1e-6 * max(1.0, float(np.abs(first).max())))
     core.checkpoint(tmp_path / "ev.pt")
     again = GraphEvaluatorCore(cfg, spec)
     assert again.restore(tmp_path / "ev.pt")

@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from causal.cdl import CDLConfig, CDLModel, export_tensors, model_config_json
+from causal.cdl import CDLConfig, CDLModel, model_config_json
+from causal.method import export_tensors
 from causal.factored import FactorLayout
 from causal.intrinsic import REWARDS, BootstrapEnsemble, Disagreement, PredDiff, PredictionError, make_reward, score
 from proto.codec import decode, encode
 from proto.messages import GraphReport, Weights
+from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.intrinsic_reward.config import IntrinsicRewardConfig
@@ -81,7 +83,7 @@ def test_registry() -> None:
 
 
 def test_core_scores_batches_with_the_newest_weights_and_graph() -> None:
-    worker = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=64))
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=64))
     spec, batch = worker.spec, worker.collect()
     core = IntrinsicRewardCore(IntrinsicRewardConfig(eta=1.0), spec)
     before = core.score(batch)
@@ -131,7 +133,7 @@ def test_bootstrap_members_agree_where_they_were_trained_and_not_elsewhere() -> 
 
 
 def test_core_trains_its_ensemble_after_scoring() -> None:
-    worker = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=256))
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=256))
     core = IntrinsicRewardCore(IntrinsicRewardConfig(reward="disagreement", ensemble_warmup=256,
                                                      ensemble_updates_per_batch=4), worker.spec)
     first = core.score(worker.collect())

@@ -10,6 +10,7 @@ import torch
 from proto import topics
 from proto.codec import decode, encode
 from proto.messages import GraphReport, ServiceStats, TransitionBatch
+from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
 from services.supervisor.inprocess import InProcessStack
 
@@ -26,9 +27,10 @@ def wait_for(predicate, timeout: float, what: str):
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     torch.set_num_threads(1)
-    cfg = RunConfig(graph="chain", num_objects=3, run_dir=str(tmp_path_factory.mktemp("run")), run_id="t",
-                    feature_dim=16, predictor_hidden=16, batch_size=32, eval_interval_s=0.2, publish_every_s=0.3,
-                    steps_per_second=3000, progress=False)
+    cfg = build_config(RunConfig, graph="chain", num_objects=3, run_dir=str(tmp_path_factory.mktemp("run")),
+                       run_id="t", cdl_feature_hidden=16, cdl_feature_dim=16, cdl_predictor_hidden=16,
+                       cdl_batch_size=32, evaluator_min_interval_s=0.2, learner_publish_every_s=0.3,
+                       worker_max_steps_per_second=3000, progress=False)
     overrides = {"dynamics-learner": {"warmup_steps": 500}, "graph-evaluator": {"min_heldout": 100}}
     s = InProcessStack(cfg, config_overrides=overrides).start()
     watcher = s.transport()

@@ -9,17 +9,18 @@ import torch
 
 from proto.codec import decode, encode
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch
+from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import PolicyLearnerCore
-from services.policy_learner.policy_weights import agent_from_config_json
+from causal.rl.policy_weights import agent_from_config_json
 
 SMALL = dict(hidden=16, rollout_batches=2, minibatch_size=32, epochs=1)
 
 
 def worker(**kwargs) -> EnvWorkerCore:
-    return EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=64, follow_policy=True, **kwargs))
+    return EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=64, follow_policy=True, **kwargs))
 
 
 def relabel(batch: TransitionBatch, version: int) -> TransitionBatch:
@@ -89,7 +90,7 @@ def _report(spec: EnvSpec, controllable: tuple[int, ...], relevant: tuple[int, .
 
 
 def test_abstraction_masks_the_policy_input_and_travels_with_the_weights() -> None:
-    w = EnvWorkerCore(EnvWorkerConfig(env="chemical-match", num_objects=3, batch_steps=64))
+    w = EnvWorkerCore(build_config(EnvWorkerConfig, env="chemical-match", num_objects=3, batch_steps=64))
     core = PolicyLearnerCore(PolicyLearnerConfig(**SMALL), w.spec)
     assert core.apply_graph(_report(w.spec, (0, 3), (6,), 1))
     assert core.kept_factors == (0, 3, 6, 9, 10, 11)  # + the provided goal colours

@@ -14,6 +14,7 @@ import torch
 from proto import topics
 from proto.codec import decode
 from proto.messages import ScoredBatch, ServiceStats, TransitionBatch, Weights
+from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
 from services.supervisor.inprocess import InProcessStack
 
@@ -23,9 +24,11 @@ RUN_SECONDS = 20.0
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     torch.set_num_threads(1)
-    cfg = RunConfig(graph="chain", num_objects=3, run_dir=str(tmp_path_factory.mktemp("run")), run_id="p",
-                    feature_dim=16, predictor_hidden=16, batch_size=32, eval_interval_s=0.5, publish_every_s=0.5,
-                    steps_per_second=2000, progress=False, workers=2, collector="ppo", intrinsic="preddiff")
+    cfg = build_config(RunConfig, graph="chain", num_objects=3, run_dir=str(tmp_path_factory.mktemp("run")),
+                       run_id="p", cdl_feature_hidden=16, cdl_feature_dim=16, cdl_predictor_hidden=16,
+                       cdl_batch_size=32, evaluator_min_interval_s=0.5, learner_publish_every_s=0.5,
+                       worker_max_steps_per_second=2000, progress=False, workers=2, collector="ppo",
+                       intrinsic="preddiff")
     overrides = {"dynamics-learner": {"warmup_steps": 500}, "graph-evaluator": {"min_heldout": 100},
                  "policy-learner": {"rollout_batches": 2, "minibatch_size": 128, "epochs": 2, "hidden": 32}}
     stack = InProcessStack(cfg, config_overrides=overrides)

@@ -11,18 +11,19 @@ import torch
 from envs.skills import OPTION_NAMES
 from proto.codec import check_fits, decode, encode
 from proto.messages import EnvSpec, TransitionBatch
+from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.env_worker.service import option_counts
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import PolicyLearnerCore
-from services.policy_learner.policy_weights import agent_from_config_json, import_policy, policy_options
+from causal.rl.policy_weights import agent_from_config_json, import_policy, policy_options
 
 PAYS = OPTION_NAMES.index("grasp:unm")
 
 
 def _spec() -> EnvSpec:
-    return EnvSpec(env_id="toy", factor_names=("p",), factor_kinds=("continuous",), factor_sizes=(2,),
+    return EnvSpec(env_id="manipulation", factor_names=("p",), factor_kinds=("continuous",), factor_sizes=(2,),
                    factor_objects=("o",), factor_locs=(0.0,), factor_scales=(1.0,), action_kind="continuous",
                    action_size=4, episode_length=1000)
 
@@ -76,10 +77,10 @@ def test_sac_over_skills_is_refused() -> None:
 
 
 def test_manipulation_worker_runs_the_skills_the_published_policy_picks() -> None:
-    worker = EnvWorkerCore(EnvWorkerConfig(env="manipulation", batch_steps=128, follow_policy=True))
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, env="manipulation", batch_steps=128, follow_policy=True))
     uniform = worker.collect()
     assert uniform.policy_version == 0 and uniform.option[0] >= 0  # the Uniform skills mark decisions too
-    assert set(option_counts(uniform)) <= {(name, "uniform") for name in OPTION_NAMES}
+    assert set(option_counts(uniform, OPTION_NAMES)) <= {(name, "uniform") for name in OPTION_NAMES}
     learner = PolicyLearnerCore(PolicyLearnerConfig(skills=True, skill_rollout=2, rollout_batches=1), worker.spec)
     last = [m for m in learner.agent.net.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
     with torch.no_grad():
@@ -93,7 +94,7 @@ def test_manipulation_worker_runs_the_skills_the_published_policy_picks() -> Non
     assert batches[0].policy_version == 1 and set(picked[picked >= 0]) == {PAYS}
     end = np.flatnonzero(np.concatenate([b.truncated for b in batches]))
     assert end.size == 1 and picked[end[0] + 1] == PAYS  # a new episode starts with a fresh decision
-    assert option_counts(batches[1]) == {("grasp:unm", "learned"): int((batches[1].option >= 0).sum())}
+    assert option_counts(batches[1], OPTION_NAMES) == {("grasp:unm", "learned"): int((batches[1].option >= 0).sum())}
     for batch in batches:
         assert learner.ingest(batch).dropped == ""
     assert learner.stitcher.decisions >= 3 and learner.ready
@@ -107,8 +108,10 @@ def test_manipulation_worker_runs_the_skills_the_published_policy_picks() -> Non
 
 
 def test_a_worker_without_skills_rejects_a_policy_over_skills() -> None:
-    worker = EnvWorkerCore(EnvWorkerConfig(num_objects=3, batch_steps=64, follow_policy=True))
-    learner = PolicyLearnerCore(PolicyLearnerConfig(skills=True), worker.spec)
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3, batch_steps=64, follow_policy=True))
+    with pytest.raises(ValueError, match="has no skills"):
+        PolicyLearnerCore(PolicyLearnerConfig(skills=True), worker.spec)
+    learner = PolicyLearnerCore(PolicyLearnerConfig(skills=True), dataclasses.replace(worker.spec, env_id="manipulation"))
     with pytest.raises(ValueError, match="skills"):
         worker.apply_weights(learner.weights())
     assert worker.policy is worker.random_policy

@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import pytest
 
+from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
-from services.supervisor.supervisor import MODULES, learning_services, resolve, service_configs
+from services.supervisor.wiring import MODULES, learning_services, resolve, service_configs
 
 
 def test_default_run_is_unchanged() -> None:
@@ -14,8 +15,8 @@ def test_default_run_is_unchanged() -> None:
 
 
 def test_policy_run_starts_the_policy_services_and_workers_follow() -> None:
-    cfg = resolve(RunConfig(router_port=7447, collector="ppo", intrinsic="preddiff", task="match", abstraction=False,
-                            max_policy_lag=2, metrics_base_port=9100))
+    cfg = resolve(build_config(RunConfig, router_port=7447, collector="ppo", intrinsic="preddiff", task="match",
+                               policy_abstraction=False, policy_max_policy_lag=2, metrics_base_port=9100))
     assert cfg.env == "chemical-match"
     assert learning_services(cfg) == ("dynamics-learner", "graph-evaluator", "policy-learner", "intrinsic-reward")
     configs = service_configs(cfg, "tcp/x:1")
@@ -30,8 +31,8 @@ def test_policy_run_starts_the_policy_services_and_workers_follow() -> None:
 
 
 def test_ppo_on_manipulation_acts_over_skills_and_sac_over_motor_actions() -> None:
-    ppo = resolve(RunConfig(router_port=7447, env="manipulation", collector="ppo", intrinsic="preddiff",
-                            policy_hide="mk"))
+    ppo = resolve(build_config(RunConfig, router_port=7447, env="manipulation", collector="ppo",
+                               intrinsic="preddiff", policy_hide="mk"))
     assert service_configs(ppo, "x")["policy-learner"].skills  # the chapter's PPO over skills with PredDiff
     assert service_configs(ppo, "x")["policy-learner"].hide == "mk"
     sac = resolve(RunConfig(router_port=7447, env="manipulation", collector="sac"))

@@ -14,7 +14,8 @@ from envs.skills import OPTION_NAMES
 from proto import topics
 from proto.codec import decode
 from proto.messages import ScoredBatch, ServiceStats, Weights
-from services.policy_learner.policy_weights import policy_options
+from causal.rl.policy_weights import policy_options
+from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
 from services.supervisor.inprocess import InProcessStack
 
@@ -24,9 +25,10 @@ DEADLINE_S = 90.0
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     torch.set_num_threads(1)
-    cfg = RunConfig(env="manipulation", run_dir=str(tmp_path_factory.mktemp("run")), run_id="sk", feature_dim=16,
-                    predictor_hidden=16, batch_size=32, eval_interval_s=1.0, publish_every_s=1.0, progress=False,
-                    workers=1, collector="ppo", intrinsic="preddiff")
+    cfg = build_config(RunConfig, env="manipulation", run_dir=str(tmp_path_factory.mktemp("run")), run_id="sk",
+                       cdl_feature_hidden=16, cdl_feature_dim=16, cdl_predictor_hidden=16, cdl_batch_size=32,
+                       evaluator_min_interval_s=1.0, learner_publish_every_s=1.0, progress=False,
+                       workers=1, collector="ppo", intrinsic="preddiff")
     overrides = {"dynamics-learner": {"warmup_steps": 128}, "graph-evaluator": {"min_heldout": 100},
                  "policy-learner": {"skill_rollout": 4, "rollout_batches": 1, "minibatch_size": 4, "epochs": 1,
                                     "hidden": 16},

@@ -10,6 +10,7 @@ import time
 import pytest
 import torch
 
+from services.runtime.config import build_config
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import DynamicsLearnerCore
 from services.env_worker.config import EnvWorkerConfig
@@ -22,7 +23,7 @@ pytestmark = pytest.mark.slow
 
 def learn(graph: str, num_objects: int, metric: str, target: float, budget_s: float) -> dict[str, float]:
     torch.set_num_threads(1)
-    worker = EnvWorkerCore(EnvWorkerConfig(graph=graph, num_objects=num_objects, batch_steps=512))
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, graph=graph, num_objects=num_objects, batch_steps=512))
     learner = DynamicsLearnerCore(DynamicsLearnerConfig(), worker.spec)
     evaluator = GraphEvaluatorCore(GraphEvaluatorConfig(), worker.spec)
     started, scores = time.monotonic(), {}

@@ -1,0 +1,148 @@
+"""What a causal method is made of: small role interfaces and the registry entry that bundles them.
+
+The services are generic: the dynamics-learner trains whatever :attr:`Method.trainer` builds, the
+graph-evaluator runs the method's :attr:`Method.global_graph` (and :attr:`Method.local_graph`)
+estimators on the published weights, the policy-learner masks its input with the graph report's
+abstraction (:attr:`Method.abstraction`), the intrinsic-reward service serves the rewards the model
+supports (:attr:`Method.intrinsic`). A method adds a module under ``causal/methods/`` that builds one
+:class:`Method` and one line in :data:`causal.methods.METHODS`; no service changes. A role a method
+does not have is ``None`` (a method without a global graph publishes no graph reports).
+
+Graphs are ``d_S x (d_S + 1)`` (row = factor at t+1, column = factor at t, the action last), as
+everywhere in Causeway; edge scores are "higher = more of an edge" and compared with a threshold.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from typing import Any, Callable, Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from causal.abstraction import Abstraction, cdl_abstraction
+from causal.factored import FactorLayout
+
+
+class DynamicsTrainer(Protocol):
+    """A dynamics model and everything that trains it; the dynamics-learner's core drives one."""
+
+    model: nn.Module
+    updates: int
+    batch_size: int
+    """Transitions per update (the learner samples batches of this size from its replay)."""
+
+    def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> dict[str, float]:
+        """One training step on a batch; returns its losses (``nll_*`` keys: nats per factor)."""
+
+    def set_parents(self, adjacency: np.ndarray) -> None:
+        """Graph feedback: the newest global graph (only called when the method has one)."""
+
+    @property
+    def lr(self) -> float:
+        """Learning rate of the next update."""
+
+    def config_json(self) -> str:
+        """Everything needed to rebuild :attr:`model` from its exported tensors (``{"model": name, ...}``)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """Checkpoint state; ``"model"`` holds the model's ``state_dict``."""
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class GlobalGraphEstimator(Protocol):
+    """Per-edge scores of the whole environment's graph from a model and held-out transitions."""
+
+    name: str
+    """What the scores are (``cmi``: nats), shown on the page and in the summary."""
+
+    def scores(self, model: nn.Module, state: torch.Tensor, action: torch.Tensor,
+               next_state: torch.Tensor) -> np.ndarray:
+        """``[d_S, d_S + 1]`` float scores over these transitions."""
+
+    def threshold(self, model: nn.Module) -> float:
+        """Edge if score >= this (from the model's own configuration)."""
+
+
+class LocalGraphEstimator(Protocol):
+    """Per-transition edge scores: the local dependency graph of each transition (chapters 5-6)."""
+
+    name: str
+
+    def scores(self, model: nn.Module, state: torch.Tensor, action: torch.Tensor,
+               next_state: torch.Tensor) -> np.ndarray:
+        """``[B, d_S, d_S + 1]`` float scores, one graph per transition."""
+
+    def threshold(self, model: nn.Module) -> float: ...
+
+
+TaskAbstraction = Callable[[np.ndarray], Abstraction]
+"""A global graph (with self-edges) -> which factors a policy sees (``Abstraction.kept``)."""
+
+RolloutStep = Callable[..., Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]
+"""``(model, parents [d_S, d_S + 1] bool, factors=None) -> step(state, action) -> next state``: the
+model used as a simulator (k-step prediction, planning), where the method's model can be one."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered causal method: its settings, its model, and the roles it fills."""
+
+    name: str
+    title: str
+    """One line for humans: what the method is, and the chapter."""
+    config: type
+    """Frozen dataclass of the method's hyper-parameters; ``causeway run`` offers its fields as
+    ``--<name>-<field>`` flags (``proto.settings.doc`` gives each its help)."""
+    trainer: Callable[[FactorLayout, Any, int], DynamicsTrainer]
+    """``(layout, config, seed) -> trainer``."""
+    model_from_config: Callable[[dict[str, Any]], nn.Module]
+    """The parsed :meth:`DynamicsTrainer.config_json` -> an untrained model of the same shape."""
+    global_graph: GlobalGraphEstimator | None = None
+    local_graph: LocalGraphEstimator | None = None
+    abstraction: TaskAbstraction = cdl_abstraction
+    intrinsic: tuple[str, ...] = ()
+    """Intrinsic rewards (``causal.intrinsic.REWARDS``) that read this method's model."""
+    rollout_step: RolloutStep | None = None
+    resumable: tuple[str, ...] = ()
+    """Config fields a resumed learner may change (left out of the checkpoint fingerprint)."""
+
+    def config_json(self, layout: FactorLayout, cfg: Any) -> str:
+        return model_config_json(self.name, layout, cfg)
+
+    def fingerprint(self, config_json: str) -> dict[str, Any]:
+        """The model configuration without the :attr:`resumable` fields (what a checkpoint must match)."""
+        model = json.loads(config_json)
+        for key in self.resumable:
+            model.get(self.name, {}).pop(key, None)
+        return model
+
+
+def model_config_json(method: str, layout: FactorLayout, cfg: Any) -> str:
+    """The model configuration every method publishes: its name, the factor layout, its settings."""
+    return json.dumps({"model": method, "layout": asdict(layout), method: asdict(cfg)}, sort_keys=True)
+
+
+def layout_from_config(data: dict[str, Any]) -> FactorLayout:
+    """The factor layout stored in a model configuration by :meth:`Method.config_json`."""
+    return FactorLayout(**{k: tuple(v) if isinstance(v, list) else v for k, v in data["layout"].items()})
+
+
+def export_tensors(model: nn.Module) -> dict[str, np.ndarray]:
+    """Parameters as numpy arrays for a ``Weights`` message (buffers are rebuilt from the config)."""
+    return {name: p.detach().cpu().numpy().copy() for name, p in model.named_parameters()}
+
+
+def import_tensors(model: nn.Module, tensors: dict[str, np.ndarray]) -> None:
+    """Load parameters published by ``export_tensors``; names and shapes must match exactly."""
+    params = dict(model.named_parameters())
+    if set(params) != set(tensors):
+        raise ValueError(f"parameter names differ: missing {sorted(set(params) - set(tensors))[:3]}, "
+                         f"unexpected {sorted(set(tensors) - set(params))[:3]}")
+    with torch.no_grad():
+        for name, value in tensors.items():
+            if tuple(value.shape) != tuple(params[name].shape):
+                raise ValueError(f"{name}: shape {value.shape} != {tuple(params[name].shape)}")
+            params[name].copy_(torch.from_numpy(np.ascontiguousarray(value, dtype=np.float32)))

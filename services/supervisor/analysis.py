@@ -1,0 +1,122 @@
+"""After a local run: the summary, the final graph, the post-run evaluation, the plots.
+
+:func:`analyse` turns what the supervisor saw (:class:`RunRecord`) and the run directory's
+checkpoints into ``summary.json`` and the pictures beside it. Every step that reads models may fail
+without losing the rest: a failure is logged or recorded in the summary, never raised (the run itself
+is done by then).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from causal.methods import get_method
+from envs.registry import env_entry
+from proto.messages import GraphReport
+from services.policy_learner.config import PolicyLearnerConfig
+from services.supervisor import evaluation
+from services.supervisor import report as reporting
+from services.supervisor.config import RunConfig
+from services.supervisor.final_graph import add_final_graph, final_graph
+from services.supervisor.wiring import env_kwargs, run_env_spec, service_configs
+
+log = logging.getLogger("supervisor")
+
+
+@dataclass
+class RunRecord:
+    """What the supervisor saw of a run, for its summary."""
+
+    facts: dict[str, Any]
+    """The run's own facts (ids, counts, wall time, why it stopped): the summary's first keys."""
+    report: GraphReport | None
+    history: list[dict[str, float]] = field(default_factory=list)
+    policy_stats: dict[tuple[str, str], dict[str, float]] | None = None
+    policy_timeline: list[tuple[float, str, str, float]] = field(default_factory=list)
+    failure: str = ""
+
+
+def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) -> dict[str, Any]:
+    """Write ``summary.json`` and the plots; returns the summary's content."""
+    report = record.report
+    content = reporting.summary(report, record.facts, record.history)
+    ok = report is not None and cfg.evaluate and not record.failure
+    final = _final_graph(cfg, run_dir, stream) if ok else None
+    if record.policy_stats is not None:
+        content["policy"] = reporting.policy_summary(record.policy_stats, record.policy_timeline)
+        reporting.plot_policy(content["policy"], run_dir / "policy.png")
+    if ok and evaluation.applies(env_entry(cfg.env), get_method(cfg.method)):
+        content["evaluation"] = _evaluate(cfg, run_dir, report, stream)
+    if report is not None:
+        reporting.plot_graphs(report, run_dir / "graph.png")
+        reporting.plot_object_graphs(report, run_dir / "object_graph.png")
+        reporting.plot_learning_curve(record.history, run_dir / "learning_curve.png")
+    if final is not None:
+        add_final_graph(content, final, run_dir)
+    reporting.write_summary(run_dir / "summary.json", content)
+    if "prediction" in content.get("evaluation", {}):
+        evaluation.plot_evaluation(content["evaluation"], run_dir / "evaluation.png")
+    return content
+
+
+def _final_graph(cfg: RunConfig, run_dir: Path, stream: TextIO) -> GraphReport | None:
+    """The final model's graph on all held-out data (:mod:`services.supervisor.final_graph`)."""
+    stream.write("final graph: edge scores of the final model on every held-out transition ...\n")
+    try:
+        final = final_graph(run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
+    except Exception:  # noqa: BLE001 - the run itself is done
+        log.exception("final graph evaluation failed")
+        return None
+    if final is not None:
+        stream.write(f"final graph: {final.num_heldout:,} held-out transitions, {reporting.score_line(final.metrics)}\n")
+    return final
+
+
+def _evaluate(cfg: RunConfig, run_dir: Path, report: GraphReport, stream: TextIO) -> dict[str, Any]:
+    """The env's post-run evaluation suite on this run's final models (:mod:`services.supervisor.evaluation`);
+    a failure is recorded in the summary."""
+    stream.write("evaluating the run's model (prediction ID/OOD" + (", Match" if cfg.task == "match" else "") + ") ...\n")
+    try:
+        policy_cfg = service_configs(cfg, "")["policy-learner"]
+        policy = load_policy(run_dir, policy_cfg, cfg) if cfg.collector != "random" else None
+        return evaluation.evaluate_run(run_dir, env_entry(cfg.env), env_kwargs(cfg), report, policy)
+    except Exception as exc:  # noqa: BLE001 - reported in the summary
+        log.exception("post-run evaluation failed")
+        return {"error": f"{type(exc).__name__}: {exc}"}
+
+
+def load_policy(run_dir: Path, policy_cfg: PolicyLearnerConfig, cfg: RunConfig, deterministic: bool = True):
+    """The policy-learner's last checkpointed policy as ``obs -> action`` (the mode, or sampled), or None.
+    A policy over skills (``policy_cfg.skills``) returns the option to run next."""
+    from services.policy_learner.core import PolicyLearnerCore
+
+    path = run_dir / "checkpoints" / "policy-learner-0.pt"
+    if not path.exists():
+        return None
+    core = PolicyLearnerCore(policy_cfg, run_env_spec(cfg))
+    core.restore(path)
+    return lambda obs: core.agent.act(obs, deterministic=deterministic)
+
+
+def git_revision() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def print_summary(content: dict) -> None:
+    keys = ("env", "method", "graph", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
+            "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
+    shown = {k: content.get(k) for k in keys}
+    if "final_graph" in content:
+        final = content["final_graph"]
+        shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "accuracy", "f1", "best_threshold_f1",
+                                                          "with_self_best_threshold_f1",
+                                                          "with_self_best_threshold_accuracy")}
+    print(json.dumps(shown, indent=1))

@@ -1,0 +1,65 @@
+"""When a local run stops: a target score, an env-step budget (with the learner's catch-up), a time budget.
+
+With ``--learner-updates-per-env-step`` the env-step budget does not stop the run at once: the
+env-workers are paused (the supervisor repeats ``pause`` every second so a restarted worker pauses
+too) and the run stops when a graph report comes from weights trained ``CATCH_UP_TOLERANCE`` x ratio x
+budget updates, or after ``--catch-up-timeout-s``. So every collector ends with the same data and the
+same training, however fast it collected.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable
+
+from proto.messages import GraphReport
+from services.supervisor.config import RunConfig
+
+log = logging.getLogger("supervisor")
+CATCH_UP_TOLERANCE = 0.98
+
+
+def learner_caught_up(report: GraphReport | None, ratio: float, max_env_steps: int) -> bool:
+    """Whether ``report`` scores weights trained for (about) ``ratio`` x ``max_env_steps`` updates.
+
+    The learner never exceeds its ratio of the steps it ingested, so such weights have also seen
+    (about) the whole budget."""
+    return report is not None and report.updates >= CATCH_UP_TOLERANCE * ratio * max_env_steps
+
+
+class StopRules:
+    """Decides, from the newest report and the env steps so far, whether and why the run stops."""
+
+    def __init__(self, cfg: RunConfig, pause_workers: Callable[[], None]) -> None:
+        self.cfg, self.pause_workers = cfg, pause_workers
+        self.budget_reached_at: float | None = None
+        self._last_pause = -1e9
+
+    def check(self, elapsed: float, report: GraphReport | None, env_steps: int) -> str:
+        """The reason to stop now, or ``""``."""
+        cfg = self.cfg
+        reason = ""
+        if cfg.target_f1 and report is not None and report.metrics.get(cfg.target_metric, 0.0) >= cfg.target_f1:
+            reason = f"target {cfg.target_metric} {cfg.target_f1} reached"
+        elif cfg.max_env_steps and env_steps >= cfg.max_env_steps:
+            reason = (self._catch_up(elapsed, report) if cfg.learner.updates_per_env_step > 0
+                      else f"env step budget {cfg.max_env_steps} reached")
+        if not reason and cfg.max_seconds and elapsed >= cfg.max_seconds:
+            reason = f"time budget {cfg.max_seconds:.0f}s reached"
+        return reason
+
+    def _catch_up(self, elapsed: float, report: GraphReport | None) -> str:
+        """Env-step budget reached with a ratio set: keep the env-workers paused until the graph
+        reflects a learner that made its share of updates (or the catch-up timeout passes)."""
+        cfg = self.cfg
+        if self.budget_reached_at is None:
+            self.budget_reached_at = elapsed
+            log.warning("env step budget %d reached: env-workers paused until the learner catches up", cfg.max_env_steps)
+        if elapsed - self._last_pause >= 1.0:
+            self._last_pause = elapsed
+            self.pause_workers()
+        if learner_caught_up(report, cfg.learner.updates_per_env_step, cfg.max_env_steps):
+            return f"env step budget {cfg.max_env_steps} reached, learner caught up ({report.updates} updates)"
+        if elapsed - self.budget_reached_at >= cfg.catch_up_timeout_s:
+            return (f"env step budget {cfg.max_env_steps} reached, learner did not catch up "
+                    f"in {cfg.catch_up_timeout_s:.0f}s")
+        return ""

@@ -1,0 +1,130 @@
+"""The wiring of a local run, readable in one place: what is checked before anything starts, which
+services run, and what each one is told.
+
+Everything a run takes is checked by :func:`resolve` before a process starts (``ValueError`` with the
+reason and, for names, the valid ones): the environment's options (a graph file is parsed), the task
+against the environment, the intrinsic reward against the method, the collector against the action
+space, a target metric against what the method and the environment can score.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+from causal.intrinsic import make_reward
+from causal.methods import get_method
+from envs.registry import EnvEntry, check_options, env_entry, make_env
+from proto.messages import EnvSpec
+from services.bus.router import free_tcp_port
+from services.dashboard.config import DashboardConfig
+from services.env_worker.config import EnvWorkerConfig
+from services.runtime.config import RunSettings
+from services.supervisor.config import RunConfig
+
+MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
+           "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard",
+           "policy-learner": "services.policy_learner", "intrinsic-reward": "services.intrinsic_reward"}
+"""Service name -> the module its process runs (``python -m <module>``)."""
+
+
+def resolve(cfg: RunConfig) -> RunConfig:
+    """``cfg`` checked, with the derived defaults filled in: the task's environment, run id, run
+    directory, router port. ``ValueError`` names what is wrong and what would be right."""
+    entry = _entry(cfg.env)
+    try:
+        method = get_method(cfg.method)
+    except KeyError as exc:
+        raise ValueError(exc.args[0]) from None
+    if cfg.task:
+        if cfg.task not in entry.tasks:
+            raise ValueError(f"environment {cfg.env!r} poses no task {cfg.task!r}; its tasks: "
+                             f"{', '.join(entry.tasks) or 'none'}")
+        cfg = dataclasses.replace(cfg, env=entry.tasks[cfg.task])
+        entry = _entry(cfg.env)
+    check_options(cfg.env, cfg.env_options)
+    _check_policy(cfg, method.intrinsic)
+    if cfg.target_f1 and method.global_graph is None:
+        raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
+    if cfg.target_f1 and not entry.has_global_truth:
+        raise ValueError(f"environment {cfg.env!r} has no true global graph to score --target-metric against")
+    run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
+                            f"{cfg.env}-{Path(cfg.env_options.graph).stem if entry.options else cfg.method}"
+                            f"-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
+    run_id = "".join(c if c.isalnum() or c in "_.-" else "-" for c in run_id)
+    return dataclasses.replace(cfg, run_id=run_id, run_dir=cfg.run_dir or f"runs/{run_id}",
+                               router_port=cfg.router_port or free_tcp_port())
+
+
+def _entry(name: str) -> EnvEntry:
+    try:
+        return env_entry(name)
+    except KeyError as exc:
+        raise ValueError(exc.args[0]) from None
+
+
+def _check_policy(cfg: RunConfig, served: tuple[str, ...]) -> None:
+    if cfg.intrinsic != "none":
+        if cfg.collector == "random":
+            raise ValueError("an intrinsic reward needs a policy to train: use --collector ppo or sac")
+        if make_reward(cfg.intrinsic).source == "dynamics" and cfg.intrinsic not in served:
+            raise ValueError(f"--intrinsic {cfg.intrinsic} reads the dynamics model, and method {cfg.method!r} "
+                             f"serves {', '.join(served) or 'no such reward'}")
+    if cfg.collector == "sac" and run_env_spec(cfg).action_kind == "categorical":
+        raise ValueError(f"SAC needs continuous actions; {cfg.env} has discrete ones (use --collector ppo)")
+
+
+def shared_settings(cfg: RunConfig) -> dict[str, Any]:
+    """The run-wide settings every service gets (:class:`RunSettings`)."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(RunSettings)}
+
+
+def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict[str, object]:
+    """The wiring: what each service is told (all of it lands in <run_dir>/config.json)."""
+    common = dict(shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir)
+
+    def port(offset: int) -> int:
+        return cfg.metrics_base_port + offset if cfg.metrics_base_port else 0
+
+    entry = env_entry(cfg.env)
+    return {
+        "dynamics-learner": dataclasses.replace(cfg.learner, **common, metrics_port=port(1), models=cfg.models),
+        "graph-evaluator": dataclasses.replace(cfg.evaluator, **common, metrics_port=port(2)),
+        "dashboard": DashboardConfig(**common, metrics_port=port(3), http_host="127.0.0.1",
+                                     http_port=cfg.dashboard_port, watch_run=cfg.run_id),
+        "policy-learner": dataclasses.replace(
+            cfg.policy, **common, metrics_port=port(4), algo=cfg.collector if cfg.collector != "random" else "ppo",
+            scored=cfg.intrinsic != "none", skills=cfg.collector == "ppo" and bool(entry.skills)),
+        "intrinsic-reward": dataclasses.replace(cfg.intrinsic_reward, **common, metrics_port=port(5),
+                                                reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff"),
+        "env-worker": worker_config(cfg, connect, worker_index),
+    }
+
+
+def learning_services(cfg: RunConfig) -> tuple[str, ...]:
+    """The services besides env-workers and dashboard that ``cfg`` asks for (no graph-evaluator for
+    a method that estimates no graph)."""
+    method = get_method(cfg.method)
+    graphs = method.global_graph is not None or method.local_graph is not None
+    return (("dynamics-learner",) + (("graph-evaluator",) if graphs else ())
+            + (("policy-learner",) if cfg.collector != "random" else ())
+            + (("intrinsic-reward",) if cfg.intrinsic != "none" else ()))
+
+
+def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
+    port = cfg.metrics_base_port + 10 + index if cfg.metrics_base_port else 0
+    return dataclasses.replace(cfg.worker, **shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect,
+                               run_dir=cfg.run_dir, metrics_port=port, instance=str(index), env=cfg.env,
+                               env_options=cfg.env_options, worker_index=index,
+                               follow_policy=cfg.collector != "random")
+
+
+def env_kwargs(cfg: RunConfig) -> dict[str, Any]:
+    """The constructor arguments of the run's environment."""
+    return env_entry(cfg.env).kwargs(cfg.env_options)
+
+
+def run_env_spec(cfg: RunConfig) -> EnvSpec:
+    """The EnvSpec of the run's environment, as its first env-worker builds it."""
+    return make_env(cfg.env, **env_kwargs(cfg)).unwrapped.env_spec()
