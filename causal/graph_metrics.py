@@ -88,6 +88,38 @@ def roc_auc(scores: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = Non
     return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
+def average_precision(scores: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Area under the precision-recall curve as average precision: the sum over distinct thresholds
+    (highest first) of precision there times the recall it adds (edge if score >= threshold; ties
+    enter together, as in scikit-learn's ``average_precision_score``). 1.0 with no true edge."""
+    mask = scored_entries(truth.shape) if mask is None else mask
+    s, t = scores[mask].astype(np.float64), truth[mask].astype(bool)
+    positives = int(t.sum())
+    if positives == 0:
+        return 1.0
+    order = np.argsort(-s, kind="mergesort")
+    s, t = s[order], t[order]
+    last_of_tie = np.r_[s[1:] != s[:-1], True]
+    tp = np.cumsum(t)[last_of_tie]
+    seen = np.nonzero(last_of_tie)[0] + 1
+    recall_gain = np.diff(np.r_[0, tp]) / positives
+    return float(np.sum(recall_gain * tp / seen))
+
+
+def score_local_graphs(scores: np.ndarray, truth: np.ndarray, threshold: float) -> dict[str, float]:
+    """Local-graph scores (chapter 5's evaluation) of per-transition edge scores ``[B, d_S, d_S + 1]``
+    against the true local graphs: ROC AUC, PR AUC (average precision) and the best F1 over every
+    threshold, plus F1 / precision / recall at ``threshold``. Pooled over the off-diagonal entries of
+    every transition (self-edges are always present and not scored), as the pooled variant of the
+    chapter's evaluation code; ``positive_rate`` is the share of true edges among them."""
+    mask = np.broadcast_to(scored_entries(truth.shape[1:]), truth.shape)
+    best_t, best = best_threshold(scores, truth, mask=mask)
+    at = binary_scores(scores >= threshold, truth, mask)
+    return {"roc_auc": roc_auc(scores, truth, mask), "pr_auc": average_precision(scores, truth, mask),
+            "best_f1": best["f1"], "best_threshold": best_t, "f1": at["f1"], "precision": at["precision"],
+            "recall": at["recall"], "positive_rate": float(truth[mask].mean()) if mask.any() else 0.0}
+
+
 def _average_ranks(sorted_values: np.ndarray) -> np.ndarray:
     ranks = np.arange(1, len(sorted_values) + 1, dtype=np.float64)
     _, start, counts = np.unique(sorted_values, return_index=True, return_counts=True)

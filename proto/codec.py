@@ -25,10 +25,10 @@ import msgpack
 import numpy as np
 
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
-from proto.messages import SCHEMA_VERSION, Control, EnvSpec, GraphReport, ScoredBatch
+from proto.messages import SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ScoredBatch
 from proto.messages import ServiceStats, TransitionBatch, Weights
 
-Message = EnvSpec | TransitionBatch | ScoredBatch | Weights | GraphReport | Control | ServiceStats
+Message = EnvSpec | TransitionBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport | Control | ServiceStats
 M = TypeVar("M")
 
 # Bounds checked before (payload, strings, containers) or while (arrays) building objects.
@@ -38,6 +38,8 @@ MAX_STR_BYTES: Final = 2**20
 MAX_CONTAINER_LEN: Final = 2**16
 MAX_STEPS: Final = 65536
 MAX_NDIM: Final = 8
+MAX_LOCAL_EXAMPLES: Final = 64
+"""Example transitions a LocalGraphReport may carry."""
 ARRAY_DTYPES: Final = ("float32", "float64", "int32", "int64", "uint8", "bool")
 REJECT_REASONS: Final = (
     "malformed", "unknown_type", "unexpected_type", "bad_version", "bad_field",
@@ -298,6 +300,12 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "action_irrelevant": _tuple(_int), "metrics": _str_map(_float),
         "true_graph": _optional(_GRAPH), "num_heldout": _int, "timestamp": _float,
     },
+    LocalGraphReport: {
+        "kind": _str, "estimator": _str, "weights_version": _int, "env_steps": _int, "updates": _int,
+        "factor_names": _tuple(_str), "threshold": _float, "scores": _array("float32", ndim=3),
+        "truth": _array("uint8", ndim=3), "metrics": _str_map(_float), "num_transitions": _int,
+        "timestamp": _float,
+    },
     Control: {"command": _str, "argument": _str, "issued_at": _float},
     ServiceStats: {
         "service": _str, "instance": _str, "values": _str_map(_float), "timestamp": _float,
@@ -392,6 +400,16 @@ def _check_graph_report(m: GraphReport) -> None:
     _check_counters(m, "weights_version", "env_steps", "updates", "num_heldout")
 
 
+def _check_local_report(m: LocalGraphReport) -> None:
+    d = len(m.factor_names)
+    k = m.scores.shape[0]
+    _require(k <= MAX_LOCAL_EXAMPLES, "too_large", f"LocalGraphReport: {k} examples > {MAX_LOCAL_EXAMPLES}")
+    shape = (k, d, d + 1)
+    _require(m.scores.shape == shape, "inconsistent", f"LocalGraphReport.scores: {m.scores.shape}, want {shape}")
+    _check_graph(m.truth, shape, "LocalGraphReport.truth")
+    _check_counters(m, "weights_version", "env_steps", "updates", "num_transitions")
+
+
 def _check_control(m: Control) -> None:
     _require(m.command in CONTROL_COMMANDS, "bad_field", f"Control.command: {_short(m.command)}")
 
@@ -407,6 +425,7 @@ _VALIDATORS: Final[dict[type, Callable[[Any], None]]] = {
     ScoredBatch: _check_scored,
     Weights: _check_weights,
     GraphReport: _check_graph_report,
+    LocalGraphReport: _check_local_report,
     Control: _check_control,
     ServiceStats: _check_stats,
 }

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -144,6 +144,36 @@ class GraphReport:
 
 
 @dataclass(frozen=True)
+class LocalGraphReport:
+    """Local (per-transition) dependency graphs a method estimated for a sample of held-out
+    transitions, scored against the simulator's true local graphs (schema version 3).
+
+    ``metrics`` pool every off-diagonal entry of every sampled transition: ``roc_auc``, ``pr_auc``
+    (average precision), ``best_f1`` at ``best_threshold``, ``f1`` / ``precision`` / ``recall`` at
+    ``threshold``, ``positive_rate`` (share of true edges). ``scores`` and ``truth`` carry a few of
+    the sampled transitions for display."""
+
+    TYPE: ClassVar[str] = "LocalGraphReport"
+    kind: str
+    """The method (``graph/<kind>`` names its global graph)."""
+    estimator: str
+    """What the scores are (``pcmi``: point-wise CMI in nats; ELDEN: gradient magnitudes)."""
+    weights_version: int
+    env_steps: int
+    updates: int
+    factor_names: tuple[str, ...]
+    threshold: float
+    scores: np.ndarray
+    """float32 [K, d_S, d_S + 1]: edge scores of K example transitions"""
+    truth: np.ndarray
+    """uint8 [K, d_S, d_S + 1]: their true local graphs"""
+    metrics: dict[str, float] = field(default_factory=dict)
+    num_transitions: int = 0
+    """Transitions the metrics pool."""
+    timestamp: float = 0.0
+
+
+@dataclass(frozen=True)
 class Control:
     """An operator command for one service (or ``*``)."""
 
@@ -166,5 +196,5 @@ class ServiceStats:
 
 MESSAGE_TYPES: dict[str, type] = {
     cls.TYPE: cls
-    for cls in (EnvSpec, TransitionBatch, ScoredBatch, Weights, GraphReport, Control, ServiceStats)
+    for cls in (EnvSpec, TransitionBatch, ScoredBatch, Weights, GraphReport, LocalGraphReport, Control, ServiceStats)
 }

@@ -41,6 +41,12 @@ def graph(run: str, kind: str = "*") -> str:
     return f"{ROOT}/{run}/graph/{kind}"
 
 
+def local(run: str, kind: str = "*") -> str:
+    """Local-graph reports of method ``kind`` (LocalGraphReport)."""
+    _check(run, kind)
+    return f"{ROOT}/{run}/local/{kind}"
+
+
 def control(run: str, service: str = "*") -> str:
     _check(run, service)
     return f"{ROOT}/{run}/control/{service}"

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, ProtocolError
+from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
 from proto import ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
 
@@ -75,6 +75,17 @@ def graph_report() -> GraphReport:
     )
 
 
+def local_report() -> LocalGraphReport:
+    rng = np.random.default_rng(1)
+    return LocalGraphReport(
+        kind="cdl", estimator="pcmi", weights_version=3, env_steps=1000, updates=10,
+        factor_names=("pos", "vel", "door"), threshold=0.02,
+        scores=rng.normal(size=(2, 3, 4)).astype(np.float32),
+        truth=rng.integers(0, 2, size=(2, 3, 4), dtype=np.uint8),
+        metrics={"roc_auc": 0.8, "pr_auc": 0.4, "best_f1": 0.5}, num_transitions=500, timestamp=1.7e9,
+    )
+
+
 def control() -> Control:
     return Control("set_task", "lift", 12.5)
 
@@ -85,7 +96,7 @@ def stats() -> ServiceStats:
 
 SAMPLES: dict[type, Callable[[], Any]] = {
     EnvSpec: env_spec, TransitionBatch: transitions, ScoredBatch: scored, Weights: weights,
-    GraphReport: graph_report, Control: control, ServiceStats: stats,
+    GraphReport: graph_report, LocalGraphReport: local_report, Control: control, ServiceStats: stats,
 }
 
 

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, ProtocolError
+from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
 from proto import ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
 
@@ -117,9 +117,21 @@ def graph_reports(draw: Any) -> GraphReport:
     )
 
 
+@st.composite
+def local_reports(draw: Any) -> LocalGraphReport:
+    d, k = draw(st.integers(1, 4)), draw(st.integers(0, 3))
+    return LocalGraphReport(
+        draw(texts), draw(texts), draw(counters), draw(counters), draw(counters),
+        factor_names=draw(fixed_lists(texts, d)), threshold=draw(finite),
+        scores=draw(finite_arrays(np.float32, (k, d, d + 1))), truth=draw(graphs(k, d, d + 1)),
+        metrics=draw(st.dictionaries(texts, finite, max_size=7)), num_transitions=draw(counters),
+        timestamp=draw(finite),
+    )
+
+
 STRATEGIES: dict[type, st.SearchStrategy[Any]] = {
     EnvSpec: env_specs(), TransitionBatch: transition_batches(), ScoredBatch: scored_batches(),
-    Weights: weight_snapshots(), GraphReport: graph_reports(),
+    Weights: weight_snapshots(), GraphReport: graph_reports(), LocalGraphReport: local_reports(),
     Control: st.builds(Control, st.sampled_from(CONTROL_COMMANDS), texts, finite),
     ServiceStats: st.builds(ServiceStats, names, names, st.dictionaries(texts, finite), finite),
 }

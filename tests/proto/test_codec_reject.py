@@ -60,6 +60,7 @@ def nan_at(array: np.ndarray, value: float = np.nan) -> dict[str, Any]:
 T = transitions()
 SPEC = env_spec()
 REPORT = graph_report()
+LOCAL = local_report()
 F32_4, F32_5, I64_5 = np.zeros(4, np.float32), np.zeros(5, np.float32), np.zeros(5, np.int64)
 FLOAT16 = {"dtype": "float16", "shape": [4, 3], "data": np.zeros((4, 3), np.float16).tobytes()}
 
@@ -136,6 +137,7 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("inf cmi", GraphReport, put("cmi", nan_at(REPORT.cmi, -np.inf))),
         ("NaN threshold", GraphReport, put("threshold", float("nan"))),
         ("inf metric", GraphReport, put("metrics.f1", float("inf"))),
+        ("NaN local score", LocalGraphReport, put("scores", nan_at(LOCAL.scores))),
         ("inf scale", EnvSpec, put("factor_scales.0", float("inf"))),
         ("NaN loc", EnvSpec, put("factor_locs.0", float("nan"))),
         ("NaN stat", ServiceStats, put("values.loss", float("nan"))),
@@ -168,8 +170,13 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("declared shape oversize", TransitionBatch, put("state.shape", [2**25, 1])),
         ("tensor oversize", Weights, put("tensors.u8.shape", [2**24 + 1])),
         ("string > 1 MiB", Control, put("argument", "x" * (2**20 + 1))),
+        ("too many local examples", LocalGraphReport,
+         lambda raw: (put("scores", wire(np.zeros((65, 3, 4), np.float32)))(raw),
+                      put("truth", wire(np.zeros((65, 3, 4), np.uint8)))(raw))),
     ],
     "inconsistent": [
+        ("local scores shape", LocalGraphReport, put("scores", wire(LOCAL.scores[:, :2]))),
+        ("local truth count", LocalGraphReport, put("truth", wire(LOCAL.truth[:1]))),
         ("next_state shape", TransitionBatch, put("next_state", wire(T.state[:, :2]))),
         ("action rows", TransitionBatch, put("action", wire(T.action[:3]))),
         ("reward length", TransitionBatch, put("reward", wire(T.reward[:3]))),
