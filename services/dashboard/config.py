@@ -14,6 +14,7 @@ class DashboardConfig(ServiceConfig):
     http_port: int = doc(8080, "port of the page, its JSON API and its event stream (0: any free port)")
     watch_run: str = doc("*", "run id to show, or * for every run on the bus")
     history_points: int = doc(1_000, "learning-curve points kept per run (older points are thinned, not cut)")
+    local_examples: int = doc(8, "example transitions of a local-graph report sent to the page (the rest are not)")
     max_runs: int = doc(64, "runs kept; the one updated longest ago is forgotten first")
     max_services: int = doc(256, "service instances kept per run; the one heard from longest ago goes first")
     max_sse_clients: int = doc(32, "concurrent /events streams; more are answered 503")

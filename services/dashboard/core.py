@@ -1,4 +1,5 @@
-"""dashboard core: per run, the latest graph report, a bounded learning curve and the services' last beats.
+"""dashboard core: per run, the latest graph report and local-graph report, a bounded learning curve
+of each, and the services' last beats.
 
 Pure: no bus, no HTTP. Messages arrive already validated by the shell's ``Inbox``; nothing here checks
 them again. ``snapshot`` and ``runs`` produce the JSON-able documents the page renders. Every public
@@ -8,18 +9,16 @@ from __future__ import annotations
 
 import threading
 from dataclasses import asdict, dataclass, field
+from typing import TypeVar
 
-import numpy as np
+from proto.messages import GraphReport, LocalGraphReport, ServiceStats
+from services.dashboard.cells import cause_names, classify, count_outcomes, short
+from services.dashboard.local_graph import LocalPoint, local_graph_document
 
-from causal.graph_metrics import scored_entries
-from proto.messages import GraphReport, ServiceStats
-
-ACTION_COLUMN = "action"
 CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1", "identifiable_f1",
                  "with_self_best_threshold_f1", "with_self_accuracy")
 ABSTRACTION_CLASSES = (("controllable", "Controllable"), ("action_relevant", "Action-relevant"),
                        ("action_irrelevant", "Action-irrelevant"))
-OUTCOMES = ("tp", "fp", "fn", "tn")
 
 
 @dataclass(frozen=True)
@@ -44,8 +43,11 @@ class CurvePoint:
 
     @classmethod
     def of(cls, report: GraphReport, time: float) -> CurvePoint:
-        scores = {name: _short(report.metrics[name]) if name in report.metrics else None for name in CURVE_METRICS}
+        scores = {name: short(report.metrics[name]) if name in report.metrics else None for name in CURVE_METRICS}
         return cls(time=time, env_steps=report.env_steps, updates=report.updates, **scores)
+
+
+Point = TypeVar("Point", CurvePoint, LocalPoint)
 
 
 @dataclass
@@ -66,17 +68,26 @@ class RunState:
     curve: list[CurvePoint] = field(default_factory=list)
     services: dict[tuple[str, str], ServiceBeat] = field(default_factory=dict)
     last_seen: float = 0.0
+    local: LocalGraphReport | None = None
+    local_received_at: float = 0.0
+    local_curve: list[LocalPoint] = field(default_factory=list)
+
+    @property
+    def updated_at(self) -> float:
+        """When the newest report of either kind arrived (0 before any)."""
+        return max(self.received_at, self.local_received_at)
 
 
 class DashboardState:
-    """The latest graph, learning curve and service beats of up to ``max_runs`` runs."""
+    """The latest graph and local graphs, their learning curves and the service beats of up to
+    ``max_runs`` runs; a snapshot shows at most ``local_examples`` example transitions."""
 
     def __init__(self, history_points: int = 1_000, max_runs: int = 64, max_services: int = 256,
-                 stale_after_s: float = 10.0) -> None:
-        if history_points < 2 or max_runs < 1 or max_services < 1:
-            raise ValueError("history_points >= 2, max_runs >= 1 and max_services >= 1 are required")
+                 stale_after_s: float = 10.0, local_examples: int = 8) -> None:
+        if history_points < 2 or max_runs < 1 or max_services < 1 or local_examples < 1:
+            raise ValueError("history_points >= 2, max_runs, max_services and local_examples >= 1 are required")
         self.history_points, self.max_runs, self.max_services = history_points, max_runs, max_services
-        self.stale_after_s = stale_after_s
+        self.stale_after_s, self.local_examples = stale_after_s, local_examples
         self._runs: dict[str, RunState] = {}
         self._lock = threading.RLock()
 
@@ -87,10 +98,22 @@ class DashboardState:
             if state.report is not None and _order(report) <= _order(state.report):
                 return False
             state.report, state.received_at = report, now
-            if len(state.curve) >= self.history_points:
-                state.curve = state.curve[::2]  # thin evenly so the curve still spans the whole run
-            state.curve.append(CurvePoint.of(report, report.timestamp or now))
+            state.curve = self._extended(state.curve, CurvePoint.of(report, report.timestamp or now))
             return True
+
+    def add_local_report(self, run: str, report: LocalGraphReport, now: float) -> bool:
+        """Keep a local-graph report as ``add_report`` keeps a graph report."""
+        with self._lock:
+            state = self._run(run, now)
+            if state.local is not None and _order(report) <= _order(state.local):
+                return False
+            state.local, state.local_received_at = report, now
+            state.local_curve = self._extended(state.local_curve, LocalPoint.of(report, report.timestamp or now))
+            return True
+
+    def _extended(self, curve: list[Point], point: Point) -> list[Point]:
+        """``curve`` + ``point``, thinned evenly first when full, so it still spans the whole run."""
+        return (curve[::2] if len(curve) >= self.history_points else curve) + [point]
 
     def add_stats(self, run: str, stats: ServiceStats, now: float) -> None:
         """Remember the newest beat of one service instance."""
@@ -106,9 +129,9 @@ class DashboardState:
             return list(self._runs)
 
     def runs(self, now: float) -> list[dict]:
-        """The run list: runs with a graph first, most recently updated first."""
+        """The run list: runs with a graph or local graphs first, most recently updated first."""
         with self._lock:
-            states = sorted(self._runs.values(), key=lambda s: (s.report is not None, s.received_at, s.last_seen),
+            states = sorted(self._runs.values(), key=lambda s: (s.updated_at > 0, s.updated_at, s.last_seen),
                             reverse=True)
             return [_run_summary(s, now) for s in states]
 
@@ -119,8 +142,13 @@ class DashboardState:
             if state is None:
                 return None
             graph = graph_document(state.report, state.received_at) if state.report is not None else None
-            return {"run": run, "server_time": now, "graph": graph,
-                    "history": [asdict(p) for p in state.curve], "services": self._services(state, now)}
+            return {"run": run, "server_time": now, "graph": graph, "history": [asdict(p) for p in state.curve],
+                    "local_graph": self._local_document(state), "services": self._services(state, now)}
+
+    def _local_document(self, state: RunState) -> dict | None:
+        if state.local is None:
+            return None
+        return local_graph_document(state.local, state.local_received_at, state.local_curve, self.local_examples)
 
     def services(self, run: str, now: float) -> list[dict] | None:
         """The service beats of ``run``, or None for an unknown run."""
@@ -144,18 +172,21 @@ class DashboardState:
         return state
 
 
-def _order(report: GraphReport) -> tuple[float, int]:
+def _order(report: GraphReport | LocalGraphReport) -> tuple[float, int]:
     return report.timestamp, report.weights_version
 
 
 def _run_summary(state: RunState, now: float) -> dict:
-    report = state.report
+    report, local = state.report, state.local
     return {"run": state.run, "has_graph": report is not None,
-            "kind": report.kind if report else None,
+            "kind": report.kind if report else local.kind if local else None,
             "weights_version": report.weights_version if report else None,
             "env_steps": report.env_steps if report else None,
             "f1": report.metrics.get("f1") if report else None,
-            "updated_at": state.received_at or None, "last_seen": state.last_seen,
+            "has_local": local is not None,
+            "local_weights_version": local.weights_version if local else None,
+            "local_roc_auc": local.metrics.get("roc_auc") if local else None,
+            "updated_at": state.updated_at or None, "last_seen": state.last_seen,
             "services": len(state.services)}
 
 
@@ -164,30 +195,15 @@ def graph_document(report: GraphReport, received_at: float) -> dict:
     names = list(report.factor_names)
     outcome = classify(report.adjacency, report.true_graph)
     truth = report.true_graph
-    cells = [[{"cmi": _short(report.cmi[i, j]), "learned": bool(report.adjacency[i, j]),
+    cells = [[{"cmi": short(report.cmi[i, j]), "learned": bool(report.adjacency[i, j]),
                "truth": None if truth is None else bool(truth[i, j]), "outcome": outcome[i][j]}
               for j in range(report.cmi.shape[1])] for i in range(report.cmi.shape[0])]
-    counts = None if truth is None else {o: sum(row.count(o) for row in outcome) for o in OUTCOMES}
+    counts = None if truth is None else count_outcomes(outcome)
     classes = [{"key": key, "label": label, "factors": [{"index": i, "name": names[i]} for i in getattr(report, key)]}
                for key, label in ABSTRACTION_CLASSES]
     return {"kind": report.kind, "weights_version": report.weights_version, "env_steps": report.env_steps,
             "updates": report.updates, "num_heldout": report.num_heldout, "timestamp": report.timestamp,
             "received_at": received_at, "threshold": report.threshold, "factor_names": names,
-            "cause_names": names + [ACTION_COLUMN], "metrics": dict(report.metrics),
-            "cmi_max": _short(report.cmi.max()), "confusion": counts, "cells": cells, "classes": classes}
+            "cause_names": cause_names(names), "metrics": dict(report.metrics),
+            "cmi_max": short(report.cmi.max()), "confusion": counts, "cells": cells, "classes": classes}
 
-
-def classify(learned: np.ndarray, truth: np.ndarray | None) -> list[list[str | None]]:
-    """Per cell: "tp", "fp", "fn", "tn"; "self" on the diagonal (never scored); None without a truth."""
-    rows, cols = learned.shape
-    if truth is None:
-        return [["self" if i == j else None for j in range(cols)] for i in range(rows)]
-    scored = scored_entries(learned.shape)
-    p, t = learned.astype(bool), truth.astype(bool)
-    names = np.where(p, np.where(t, "tp", "fp"), np.where(t, "fn", "tn"))
-    return [[str(names[i, j]) if scored[i, j] else "self" for j in range(cols)] for i in range(rows)]
-
-
-def _short(value: float) -> float:
-    """Five significant digits: enough for a tooltip, a third of the JSON."""
-    return float(f"{float(value):.5g}")

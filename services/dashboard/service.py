@@ -1,9 +1,9 @@
 """dashboard service shell: the only dashboard file that touches the bus.
 
-Subscribes to every run's graph reports and stats beats (``watch_run`` narrows that to one run), asks
-the graph queryables for their latest report at start, and serves the page over HTTP (``web.py``).
-Each new report is pushed to the page's event streams of its run; the service list at most every
-``services_push_s``.
+Subscribes to every run's graph reports, local-graph reports and stats beats (``watch_run`` narrows
+that to one run), asks the graph and local-graph queryables for their latest report at start, and
+serves the page over HTTP (``web.py``). Each new report of either kind is pushed to the page's event
+streams of its run; the service list at most every ``services_push_s``.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from proto import topics
-from proto.messages import GraphReport, ServiceStats
+from proto.messages import GraphReport, LocalGraphReport, ServiceStats
 from services.bus.base import Transport
 from services.dashboard.config import DashboardConfig
 from services.dashboard.core import DashboardState
@@ -95,12 +95,13 @@ def _take(inbox: Inbox, wait_s: float) -> list[tuple[str, Any]]:
     return ([first] if first is not None else []) + inbox.drain()
 
 
-def _apply(state: DashboardState, reports: list[tuple[str, GraphReport]], beats: list[tuple[str, ServiceStats]],
-           now: float) -> tuple[set[str], set[str]]:
-    """Feed the state; returns (runs with a new report, runs with a new beat)."""
+def _apply(state: DashboardState, reports: list[tuple[str, GraphReport | LocalGraphReport]],
+           beats: list[tuple[str, ServiceStats]], now: float) -> tuple[set[str], set[str]]:
+    """Feed the state; returns (runs with a new report of either kind, runs with a new beat)."""
     new_reports = set()
     for key, report in reports:
-        if state.add_report(run_of(key), report, now):
+        add = state.add_local_report if isinstance(report, LocalGraphReport) else state.add_report
+        if add(run_of(key), report, now):
             new_reports.add(run_of(key))
     for key, beat in beats:
         state.add_stats(run_of(key), beat, now)
@@ -120,26 +121,30 @@ def run(cfg: DashboardConfig, transport: Transport | None = None) -> None:
 
 def _serve(shell: ServiceShell, cfg: DashboardConfig) -> None:
     """Wire bus -> state -> HTTP, then loop until stopped."""
-    state = DashboardState(cfg.history_points, cfg.max_runs, cfg.max_services, cfg.stale_after_s)
+    state = DashboardState(cfg.history_points, cfg.max_runs, cfg.max_services, cfg.stale_after_s, cfg.local_examples)
     web_metrics = _web_metrics(shell)
     runs_gauge = shell.metrics.gauge("causeway_dashboard_runs", "Runs the dashboard knows")
     hub = EventHub(cfg.max_sse_clients, web_metrics.sse_clients)
     graphs = shell.inbox("graphs", GraphReport, maxsize=256)
+    local_graphs = shell.inbox("local_graphs", LocalGraphReport, maxsize=256)
     beats = shell.inbox("stats", ServiceStats, maxsize=4096)
     shell.subscribe(topics.graph(cfg.watch_run), graphs)
+    shell.subscribe(topics.local(cfg.watch_run), local_graphs)
     shell.subscribe(topics.stats(cfg.watch_run), beats)
     watch = _LoopWatch()
     server = DashboardServer((cfg.http_host, cfg.http_port), state, hub, web_metrics, watch.healthy, cfg.heartbeat_s)
     server.start()
     log.info("serving the dashboard on http://%s:%d/", cfg.http_host, server.port)
     try:
-        for key, payload in shell.transport.query(topics.graph(cfg.watch_run), timeout=2.0):
-            graphs.on_payload(key, payload)  # the same validation and counting as a published report
+        for topic, inbox in ((topics.graph(cfg.watch_run), graphs), (topics.local(cfg.watch_run), local_graphs)):
+            for key, payload in shell.transport.query(topic, timeout=2.0):
+                inbox.on_payload(key, payload)  # the same validation and counting as a published report
         pusher = _Pusher(state, hub, cfg.services_push_s)
         while not shell.stopping.is_set():
             shell.poll_control()
             now = time.time()
-            new_reports, beaten = _apply(state, _take(graphs, 0.1), beats.drain(), now)
+            reports = _take(graphs, 0.1) + local_graphs.drain()
+            new_reports, beaten = _apply(state, reports, beats.drain(), now)
             pusher.reports(new_reports, now)
             pusher.services(beaten, now)
             runs_gauge.set(pusher.run_count)

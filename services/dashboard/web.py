@@ -6,9 +6,11 @@
     GET /                   the page (static/index.html)
     GET /static/<file>      its script, style sheet and icon (preloaded; nothing else on disk is served)
     GET /api/runs           {"server_time", "runs": [...]}
-    GET /api/runs/<run>     the run's snapshot (core.DashboardState.snapshot), 404 for an unknown run
-    GET /events?run=<run>   text/event-stream: "runs" and "snapshot" at once, then on every new report,
-                            "services" at most every few seconds, a comment every heartbeat_s; 503 when full
+    GET /api/runs/<run>     the run's snapshot (core.DashboardState.snapshot: "graph", "history",
+                            "local_graph", "services"), 404 for an unknown run
+    GET /events?run=<run>   text/event-stream: "runs" and "snapshot" at once, then on every new report
+                            (graph or local graph), "services" at most every few seconds, a comment
+                            every heartbeat_s; 503 when full
     GET /healthz            200 {"status": "ok"} while the bus loop runs, 503 otherwise
 """
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""GraphReports built for the dashboard tests: a Chemical-like factor set, a true graph, a noisy learned one."""
+"""Reports built for the dashboard tests: a Chemical-like factor set, a true graph, a noisy learned one,
+and local-graph reports of example transitions whose true local graphs are subsets of that graph."""
 from __future__ import annotations
 
 import time
@@ -6,8 +7,8 @@ import time
 import numpy as np
 
 from causal.abstraction import cdl_abstraction
-from causal.graph_metrics import score_graph, scored_entries
-from proto.messages import GraphReport, ServiceStats
+from causal.graph_metrics import score_graph, score_local_graphs, scored_entries
+from proto.messages import GraphReport, LocalGraphReport, ServiceStats
 
 THRESHOLD = 0.02
 
@@ -54,6 +55,31 @@ def make_report(num_objects: int = 3, version: int = 1, errors: int = 2, seed: i
                        action_irrelevant=abstraction.action_irrelevant,
                        metrics=score_graph(cmi, truth, THRESHOLD) if with_truth else {},
                        true_graph=truth if with_truth else None, num_heldout=400 + n, timestamp=time.time())
+
+
+def make_local_report(num_objects: int = 3, version: int = 1, examples: int = 4, errors: int = 2, seed: int = 0,
+                      kind: str = "cdl", estimator: str = "pcmi") -> LocalGraphReport:
+    """Local graphs of ``examples`` transitions, each keeping about 70% of the global graph's edges; the
+    pCMI-like scores (nats) get ``errors`` scored entries of every transition wrong (alternately FP, FN)."""
+    rng = np.random.default_rng(seed)
+    shape = (examples, *true_graph(num_objects).shape)
+    truth = (true_graph(num_objects) * (rng.random(shape) < 0.7)).astype(np.uint8)
+    n = shape[1]
+    truth[:, np.arange(n), np.arange(n)] = 1
+    scores = np.where(truth == 1, rng.uniform(0.05, 1.5, shape), rng.uniform(-0.01, 0.008, shape))
+    scored = np.argwhere(scored_entries(shape[1:]))
+    for k in range(examples):
+        for e in range(errors):
+            pool = [tuple(c) for c in scored if truth[(k, *c)] == e % 2]
+            if pool:
+                cell = (k, *pool[int(rng.integers(len(pool)))])
+                scores[cell] = rng.uniform(0.03, 0.1) if e % 2 == 0 else rng.uniform(1e-3, 0.01)
+    scores = scores.astype(np.float32)
+    steps = 5_000 * version
+    return LocalGraphReport(kind=kind, estimator=estimator, weights_version=version, env_steps=steps,
+                            updates=steps // 20, factor_names=factor_names(num_objects), threshold=THRESHOLD,
+                            scores=scores, truth=truth, metrics=score_local_graphs(scores, truth, THRESHOLD),
+                            num_transitions=256, timestamp=time.time())
 
 
 def make_stats(service: str, instance: str = "0", **values: float) -> ServiceStats:

@@ -2,7 +2,9 @@
 
 Loads the page, waits for the first report to render, publishes a new one and waits for the DOM to
 change without a reload, checks the heat maps, classes, scores and the hover tooltip, and leaves a
-screenshot in test-artifacts/dashboard.png.
+screenshot in test-artifacts/dashboard.png. Then the local-graph panel: shown with its scores and an
+example transition's matrices for runs with local-graph reports (with or without a global graph),
+hidden for runs without; screenshot in test-artifacts/dashboard-local.png.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import urllib.request
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from proto import topics
@@ -24,11 +27,12 @@ from proto.codec import encode
 from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from tests.dashboard.browser import CHROMIUM, Browser
-from tests.dashboard.reports import make_report, make_stats
+from tests.dashboard.reports import make_local_report, make_report, make_stats
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 REPO = Path(__file__).resolve().parents[2]
 SCREENSHOT = REPO / "test-artifacts" / "dashboard.png"
+LOCAL_SCREENSHOT = REPO / "test-artifacts" / "dashboard-local.png"
 RUN = "chemical-demo"
 
 
@@ -113,6 +117,7 @@ def test_live_page_renders_updates_without_reload_and_explains_cells(stack) -> N
         for heatmap in ("learned", "truth", "compare"):
             assert browser.evaluate(f"document.querySelectorAll('#heatmap-{heatmap} rect.cell').length") == 9 * 10
         browser.evaluate("window.loadedOnce = true")
+        assert browser.evaluate("document.getElementById('local-panel').hidden") is True  # no local reports
         shown = make_report(3, version=6, errors=3, seed=6).metrics  # the report on the page now
         assert shown["with_self_best_threshold_f1"] != shown["best_threshold_f1"]  # the two scorings differ
         assert text(browser, "#with-self-f1") == f"{shown['with_self_best_threshold_f1']:.3f}"
@@ -159,3 +164,93 @@ def test_live_page_renders_updates_without_reload_and_explains_cells(stack) -> N
         browser.wait_for("document.getElementById('kpi-with-self').hidden", 10, "the Table 3.1 score hidden")
         assert browser.exceptions == []
     assert SCREENSHOT.stat().st_size > 30_000
+
+
+def visible(browser: Browser, element_id: str) -> bool:
+    return browser.evaluate(f"!document.getElementById({json.dumps(element_id)}).hidden")
+
+
+def outcome_count(browser: Browser, outcome: str) -> int:
+    return browser.evaluate(f"document.querySelectorAll('#local-compare rect.cell.outcome-{outcome}').length")
+
+
+def check_example(browser: Browser, report, k: int) -> None:
+    """The panel shows example ``k`` of ``report``: its outcomes on the comparison map, its counts."""
+    predicted = report.scores[k] >= report.threshold
+    off = ~np.eye(*predicted.shape, dtype=bool)
+    truth = report.truth[k].astype(bool)
+    for outcome, cells in (("tp", predicted & truth), ("fp", predicted & ~truth), ("fn", ~predicted & truth)):
+        assert outcome_count(browser, outcome) == int((cells & off).sum()), outcome
+        assert text(browser, f"#local-count-{outcome}") == str(int((cells & off).sum()))
+    assert outcome_count(browser, "self") == predicted.shape[0]
+
+
+def publish_local(publisher: ZenohTransport, base: str, run: str, versions: range, kind: str = "cdl") -> None:
+    for v in versions:
+        publisher.publish(topics.local(run, kind), encode(make_local_report(3, version=v, errors=max(0, 6 - v), seed=v,
+                                                                            kind=kind)))
+        time.sleep(0.03)
+    wait_for(lambda: fetch_json(f"{base}/api/runs/{run}")["local_graph"]["weights_version"] == versions[-1], 10,
+             f"local report v{versions[-1]} of {run}")
+
+
+def select_run(browser: Browser, run: str) -> None:
+    browser.evaluate(f"(() => {{ const s = document.getElementById('run'); s.value = {json.dumps(run)};"
+                     "s.dispatchEvent(new Event('change')); })()")
+
+
+def test_local_graph_panel_shows_for_runs_with_local_reports_only(stack) -> None:
+    publisher, latest, base = stack
+    latest.set(encode(make_report(3, version=2, errors=2)))  # RUN: a global graph, no local graphs
+    publisher.publish(topics.graph("both", "cdl"), encode(make_report(3, version=4, errors=1, seed=4)))
+    publish_local(publisher, base, "both", range(1, 5))
+    publish_local(publisher, base, "local-only", range(1, 3), kind="elden")
+    shown = make_local_report(3, version=4, errors=2, seed=4)  # the report "both" has now
+    with Browser(width=1440, height=1000) as browser:
+        browser.navigate(f"{base}/?run=both")
+        browser.wait_for("document.body.dataset.localWeightsVersion === '4'"
+                         " && document.body.dataset.weightsVersion === '4'", 10, "both panels")
+        assert visible(browser, "local-panel") and visible(browser, "kpis") and visible(browser, "heatmap-learned")
+        m = shown.metrics
+        assert text(browser, "#local-roc-auc") == f"{m['roc_auc']:.3f}"
+        assert text(browser, "#local-pr-auc") == f"{m['pr_auc']:.3f}"
+        assert text(browser, "#local-best-f1") == f"{m['best_f1']:.3f}"
+        assert text(browser, "#local-positive-rate") == f"{100 * m['positive_rate']:.1f}%"
+        assert text(browser, "#local-estimator") == "point-wise CMI"
+        for heatmap in ("estimated", "truth", "compare"):
+            assert browser.evaluate(f"document.querySelectorAll('#local-{heatmap} rect.cell').length") == 9 * 10
+        labels = browser.evaluate("[...document.querySelectorAll('#local-estimated text')].map(t => t.textContent)")
+        assert set(labels) == {*shown.factor_names, "action"}
+        check_example(browser, shown, 0)
+        assert text(browser, "#local-example") == "transition 1 of 4"
+        browser.evaluate("document.getElementById('local-next').click()")
+        browser.wait_for("document.getElementById('local-example').textContent === 'transition 2 of 4'", 5, "step")
+        check_example(browser, shown, 1)
+        assert browser.evaluate("document.querySelectorAll('#local-chart path.series-roc_auc').length") == 1
+        assert "PR AUC" in text(browser, "#local-chart-legend")
+
+        browser.evaluate("window.loadedOnce = true")
+        newer = make_local_report(3, version=5, errors=0, seed=5)
+        publisher.publish(topics.local("both", "cdl"), encode(newer))
+        browser.wait_for("document.body.dataset.localWeightsVersion === '5'", 10, "the live local update")
+        assert browser.evaluate("window.loadedOnce === true"), "the page reloaded instead of updating live"
+        assert text(browser, "#local-example") == "transition 2 of 4"  # the example stepped to stays
+        check_example(browser, newer, 1)
+        browser.fit_to_content()
+        browser.hover("#local-estimated rect.cell[data-i='3'][data-j='0']")
+        tip = browser.wait_for("!document.getElementById('tooltip').hidden"
+                               " && document.getElementById('tooltip').innerText", 5, "the tooltip")
+        assert "obj0.color → obj1.color" in tip and "pCMI" in tip and "estimated" in tip
+        browser.screenshot(LOCAL_SCREENSHOT)
+
+        select_run(browser, "local-only")  # a method with local graphs and no global graph
+        browser.wait_for("document.body.dataset.localWeightsVersion === '2'", 10, "the local-only run")
+        assert visible(browser, "local-panel") and not visible(browser, "kpis") and not visible(browser, "waiting")
+        assert browser.evaluate("document.getElementById('board').classList.contains('local-only')")
+        assert text(browser, "#kind") == "elden"
+        select_run(browser, RUN)
+        browser.wait_for("document.body.dataset.weightsVersion === '2'"
+                         " && document.getElementById('local-panel').hidden", 10, "the global-only run, no local panel")
+        assert visible(browser, "kpis") and visible(browser, "heatmap-learned")
+        assert browser.exceptions == []
+    assert LOCAL_SCREENSHOT.stat().st_size > 30_000

@@ -8,7 +8,8 @@ import pytest
 
 from causal.graph_metrics import confusion
 from proto.messages import GraphReport
-from services.dashboard.core import DashboardState, classify
+from services.dashboard.cells import classify
+from services.dashboard.core import DashboardState
 from tests.dashboard.reports import factor_names, make_report, make_stats
 
 
@@ -96,10 +97,12 @@ def test_several_runs_are_kept_apart_and_listed_newest_graph_first() -> None:
     assert [r["run"] for r in runs] == ["new", "old", "beats-only"]
     assert runs[0]["weights_version"] == 7 and runs[0]["has_graph"] and runs[0]["kind"] == "cdl"
     assert runs[2] == {"run": "beats-only", "has_graph": False, "kind": None, "weights_version": None,
-                       "env_steps": None, "f1": None, "updated_at": None, "last_seen": 3.0, "services": 1}
+                       "env_steps": None, "f1": None, "has_local": False, "local_weights_version": None,
+                       "local_roc_auc": None, "updated_at": None, "last_seen": 3.0, "services": 1}
     assert len(state.snapshot("old", 4.0)["graph"]["factor_names"]) == 6
     assert len(state.snapshot("new", 4.0)["graph"]["factor_names"]) == 9
     assert state.snapshot("beats-only", 4.0)["graph"] is None
+    assert state.snapshot("beats-only", 4.0)["local_graph"] is None
     assert state.snapshot("nope", 4.0) is None and state.services("nope", 4.0) is None
     state.add_report("newest", make_report(2), now=5.0)  # a fourth run: "old" was seen longest ago
     assert sorted(state.run_ids()) == ["beats-only", "new", "newest"]

@@ -7,7 +7,9 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from proto import topics
@@ -17,7 +19,7 @@ from services.bus.memory import InMemoryBus, InMemoryTransport
 from services.bus.router import free_tcp_port
 from services.dashboard import service
 from services.dashboard.config import DashboardConfig
-from tests.dashboard.reports import make_report, make_stats
+from tests.dashboard.reports import make_local_report, make_report, make_stats
 
 RUN = "run-a"
 
@@ -77,12 +79,14 @@ def dashboard(tmp_path):
     publisher = InMemoryTransport(bus)
     latest = publisher.serve_latest(topics.graph(RUN, "cdl"))
     latest.set(encode(make_report(3, version=1, errors=3)))  # answered to the dashboard's query at start
+    latest_local = publisher.serve_latest(topics.local(RUN, "cdl"))
+    latest_local.set(encode(make_local_report(3, version=1, errors=2)))  # likewise
     cfg = DashboardConfig(run_id="dash", run_dir=str(tmp_path), http_host="127.0.0.1", http_port=free_tcp_port(),
                           metrics_port=free_tcp_port(), max_sse_clients=2, heartbeat_s=0.3, services_push_s=0.1)
     thread = threading.Thread(target=service.run, args=(cfg, InMemoryTransport(bus)), daemon=True)
     thread.start()
     wait_for(lambda: _status(cfg.http_port, "/healthz") == 200, 10, "the dashboard to serve")
-    yield cfg, publisher, latest
+    yield cfg, publisher, latest, latest_local
     publisher.publish(topics.control("dash", "all"), encode(Control("stop")))
     thread.join(10)
     assert not thread.is_alive()
@@ -97,7 +101,7 @@ def _status(port: int, path: str) -> int | None:
 
 
 def test_api_serves_the_run_list_snapshots_and_the_page(dashboard) -> None:
-    cfg, publisher, _ = dashboard
+    cfg, publisher, *_ = dashboard
     publisher.publish(topics.graph("run-b", "cdl"), encode(make_report(2, version=4)))
     listed = lambda: [r["run"] for r in json.loads(get(cfg.http_port, "/api/runs")[2])["runs"]]  # noqa: E731
     # graphs first, newest first; then the dashboard's own run, known from its own stats beats only
@@ -118,7 +122,7 @@ def test_api_serves_the_run_list_snapshots_and_the_page(dashboard) -> None:
 
 
 def test_events_push_each_new_report_and_heartbeats(dashboard) -> None:
-    cfg, publisher, latest = dashboard
+    cfg, publisher, latest, _ = dashboard
     stream = EventStream(cfg.http_port, RUN)
     try:
         assert stream.response.getheader("Content-Type") == "text/event-stream"
@@ -154,7 +158,7 @@ def test_event_streams_are_capped_and_metrics_are_exported(dashboard) -> None:
 
 
 def test_bad_messages_are_counted_and_survived(dashboard) -> None:
-    cfg, publisher, latest = dashboard
+    cfg, publisher, latest, _ = dashboard
     publisher.publish(topics.graph(RUN, "cdl"), b"\x93 not msgpack")
     publisher.publish(topics.stats(RUN, "x", "0"), encode(make_report(2)))  # a report where stats belong
     latest.set(encode(make_report(3, version=5)))
@@ -163,3 +167,58 @@ def test_bad_messages_are_counted_and_survived(dashboard) -> None:
     metrics = get(cfg.metrics_port, "/metrics")[2].decode()
     assert 'causeway_messages_rejected_total{reason="malformed"} 1.0' in metrics
     assert 'causeway_messages_rejected_total{reason="unexpected_type"} 1.0' in metrics
+
+
+def snapshot_of(port: int, run: str) -> dict:
+    status, _, body = get(port, f"/api/runs/{run}")
+    return json.loads(body) if status == 200 else {}
+
+
+def test_local_reports_are_queried_at_start_and_served_beside_the_graph(dashboard) -> None:
+    cfg, publisher, _, _ = dashboard
+    both = snapshot_of(cfg.http_port, RUN)
+    local = both["local_graph"]
+    assert both["graph"]["weights_version"] == 1 and local["weights_version"] == 1
+    assert local["estimator"] == "pcmi" and local["kind"] == "cdl" and local["num_examples"] == 4
+    first = local["examples"][0]
+    assert len(first["outcomes"]) == 9 and {o for row in first["outcomes"] for o in row} <= {"tp", "fp", "fn", "tn",
+                                                                                               "self"}
+    assert first["confusion"]["fp"] >= 1 and first["confusion"]["fn"] >= 1
+    assert set(local["metrics"]) >= {"roc_auc", "pr_auc", "best_f1", "positive_rate"}
+
+    elden = make_local_report(2, version=3, kind="elden", estimator="grad")
+    publisher.publish(topics.local("local-only", "elden"), encode(elden))
+    only = wait_for(lambda: snapshot_of(cfg.http_port, "local-only"), 5, "the local-only run")
+    assert only["graph"] is None and only["history"] == [] and only["local_graph"]["estimator"] == "grad"
+    runs = {r["run"]: r for r in json.loads(get(cfg.http_port, "/api/runs")[2])["runs"]}
+    assert runs["local-only"]["has_local"] and not runs["local-only"]["has_graph"]
+    assert runs["local-only"]["kind"] == "elden" and runs[RUN]["has_graph"] and runs[RUN]["has_local"]
+
+
+def test_events_push_each_new_local_report(dashboard) -> None:
+    cfg, _, _, latest_local = dashboard
+    stream = EventStream(cfg.http_port, RUN)
+    try:
+        assert stream.until("snapshot")["local_graph"]["weights_version"] == 1
+        latest_local.set(encode(make_local_report(3, version=2, errors=0)))
+        pushed = stream.until("snapshot")
+        local = pushed["local_graph"]
+        assert local["weights_version"] == 2 and [p["env_steps"] for p in local["history"]] == [5000, 10000]
+        assert all(e["confusion"]["fp"] == e["confusion"]["fn"] == 0 for e in local["examples"])
+        assert pushed["graph"]["weights_version"] == 1 and len(pushed["history"]) == 1  # the graph curve is apart
+    finally:
+        stream.close()
+
+
+def test_bad_local_reports_are_counted_and_survived(dashboard) -> None:
+    cfg, publisher, _, latest_local = dashboard
+    publisher.publish(topics.local(RUN, "cdl"), b"\x93 not msgpack")
+    publisher.publish(topics.local(RUN, "cdl"), encode(make_report(2)))  # a graph report where local ones belong
+    lopsided = replace(make_local_report(2), truth=np.zeros((4, 6, 6), np.uint8))  # truth not [K, d, d + 1]
+    publisher.publish(topics.local(RUN, "cdl"), encode(lopsided))
+    latest_local.set(encode(make_local_report(3, version=5)))
+    wait_for(lambda: snapshot_of(cfg.http_port, RUN)["local_graph"]["weights_version"] == 5, 5, "the next good one")
+    metrics = get(cfg.metrics_port, "/metrics")[2].decode()
+    assert 'causeway_messages_rejected_total{reason="malformed"} 1.0' in metrics
+    assert 'causeway_messages_rejected_total{reason="unexpected_type"} 1.0' in metrics
+    assert 'causeway_messages_rejected_total{reason="inconsistent"} 1.0' in metrics

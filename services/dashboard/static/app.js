@@ -1,9 +1,11 @@
 // Causeway live causal-graph page. No framework, no network beyond this server: one EventSource on
 // /events?run=<run> delivers "runs", "snapshot" and "services" events; everything is drawn in SVG.
+// A snapshot carries the global graph, local graphs, or both: the page shows what the run has.
 
 import { renderChart, renderChartLegend } from './chart.js';
 import { $, debounce, fmt, html } from './dom.js';
 import { GraphViews } from './heatmap.js';
+import { LocalPanel } from './local.js';
 
 const LARGE_GRAPH_COLUMNS = 16; // beyond this, two heat maps per row (see .board.large)
 const SERVICE_VALUES = ['env_steps', 'updates', 'evaluated_version', 'heldout', 'episodes', 'runs', 'sse_clients'];
@@ -12,9 +14,10 @@ const STATUS_TEXT = { live: 'live', connecting: 'connecting…', reconnecting: '
 const params = new URLSearchParams(window.location.search);
 const view = {
   run: params.get('run'), userPicked: params.has('run'), source: null, retry: null,
-  graph: null, history: [], services: [], servicesAt: Date.now(), clockOffsetMs: 0,
+  graph: null, local: null, history: [], services: [], servicesAt: Date.now(), clockOffsetMs: 0,
 };
 const graphViews = new GraphViews($('legend-learned'));
+const localPanel = new LocalPanel();
 const serverNow = () => (Date.now() + view.clockOffsetMs) / 1000;
 
 function setText(id, text) { $(id).textContent = text; }
@@ -93,12 +96,23 @@ function renderServices() {
   $('services').replaceChildren(...(items.length ? items : [html('li', { className: 'empty', text: 'no beats yet' })]));
 }
 
+// Local graphs but no global graph (a method without one): hide the global scores and heat maps.
+function setLocalOnly(on) {
+  $('kpis').hidden = on;
+  $('board').classList.toggle('local-only', on);
+}
+
+function showKind(kind) {
+  setText('kind', kind || '');
+  $('kind').hidden = !kind;
+}
+
 function renderGraph(graph) {
   const previous = view.graph;
   view.graph = graph;
+  setLocalOnly(false); // before drawing: hidden heat maps have no width to size to
   $('waiting').hidden = true;
-  setText('kind', graph.kind);
-  $('kind').hidden = false;
+  showKind(graph.kind);
   setText('learned-sub', `CMI per edge, nats · ${fmt.int(graph.num_heldout)} held-out transitions`);
   $('board').classList.toggle('large', graph.cause_names.length > LARGE_GRAPH_COLUMNS);
   graphViews.render(graph);
@@ -107,9 +121,11 @@ function renderGraph(graph) {
   document.body.dataset.weightsVersion = String(graph.weights_version);
 }
 
-function renderWaiting() {
+function renderWaiting(local = null) {
   view.graph = null;
-  $('waiting').hidden = false;
+  setLocalOnly(Boolean(local));
+  showKind(local && local.kind);
+  $('waiting').hidden = Boolean(local);
   $('waiting').textContent = view.run ? `Waiting for the first graph report of run “${view.run}”…`
     : 'Waiting for a run to report on the bus…';
 }
@@ -130,7 +146,8 @@ function onRuns(runs) {
   const select = $('run');
   const known = runs.some((r) => r.run === view.run);
   const options = runs.map((r) => {
-    const note = r.has_graph ? ` — F1 ${fmt.ratio(r.f1)} · v${r.weights_version}` : ' — no graph yet';
+    const local = r.has_local ? ` — local ROC AUC ${fmt.ratio(r.local_roc_auc)} · v${r.local_weights_version}` : null;
+    const note = r.has_graph ? ` — F1 ${fmt.ratio(r.f1)} · v${r.weights_version}` : local || ' — no graph yet';
     const option = html('option', { text: `${r.run}${note}` });
     option.value = r.run;
     return option;
@@ -143,7 +160,9 @@ function onRuns(runs) {
   select.replaceChildren(...options);
   if (view.run) select.value = view.run;
   const best = runs[0];
-  if (!view.userPicked && best && best.run !== view.run && (view.run == null || (!view.graph && best.has_graph))) {
+  const shown = view.graph || view.local;
+  if (!view.userPicked && best && best.run !== view.run
+      && (view.run == null || (!shown && (best.has_graph || best.has_local)))) {
     selectRun(best.run, false);
   }
 }
@@ -153,8 +172,10 @@ function onSnapshot(snapshot) {
   view.clockOffsetMs = snapshot.server_time * 1000 - Date.now();
   view.history = snapshot.history;
   onServices(snapshot);
+  view.local = snapshot.local_graph;
   if (snapshot.graph) renderGraph(snapshot.graph);
-  else renderWaiting();
+  else renderWaiting(view.local);
+  localPanel.render(view.local);
   drawChart();
   renderAge();
 }
@@ -193,6 +214,8 @@ function selectRun(run, byUser) {
   view.userPicked = view.userPicked || byUser;
   view.history = [];
   view.services = [];
+  view.local = null;
+  localPanel.render(null);
   if (byUser) window.history.replaceState(null, '', `?run=${encodeURIComponent(run)}`);
   renderWaiting();
   drawChart();
@@ -204,6 +227,7 @@ $('run').addEventListener('change', (e) => selectRun(e.target.value, true));
 window.addEventListener('resize', debounce(() => {
   if (view.graph) graphViews.render(view.graph);
   drawChart();
+  localPanel.resize();
 }, 150));
 renderWaiting();
 drawChart();

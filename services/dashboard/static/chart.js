@@ -1,4 +1,5 @@
-// The learning curve: scores against env steps, one SVG line per score, values on hover.
+// Learning curves: scores against env steps, one SVG line per score, values on hover. SERIES are the
+// global graph's; a caller passes its own (the local-graph panel's LOCAL_SERIES).
 
 import { fmt, html, svg, tooltip } from './dom.js';
 
@@ -11,12 +12,20 @@ const SERIES = [
   { key: 'with_self_best_threshold_f1', label: 'best F1, Table 3.1 scoring', dotted: true, optional: 'present' },
 ];
 
+export const LOCAL_SERIES = [
+  { key: 'roc_auc', label: 'ROC AUC' },
+  { key: 'pr_auc', label: 'PR AUC' },
+  { key: 'best_f1', label: 'best F1', dashed: true },
+  { key: 'f1', label: 'F1 at ε', optional: 'present' },
+  { key: 'positive_rate', label: 'positive rate (chance PR AUC)', dotted: true, optional: 'present' },
+];
+
 // Optional series are drawn only where they tell something new: identifiable F1 where it differs
 // from F1 (environments with constant factors, i.e. manipulation); the Table 3.1-scored F1 (every
 // entry, self-edges counted found) where the evaluator reports it (older runs do not).
-function activeSeries(points) {
+function activeSeries(points, all) {
   const shows = { differs: (p, key) => p[key] != null && p[key] !== p.f1, present: (p, key) => p[key] != null };
-  return SERIES.filter(({ key, optional }) => !optional || points.some((p) => shows[optional](p, key)));
+  return all.filter(({ key, optional }) => !optional || points.some((p) => shows[optional](p, key)));
 }
 
 const lineClass = ({ key, dashed, dotted }) => `series-${key}${dashed ? ' dashed' : ''}${dotted ? ' dotted' : ''}`;
@@ -30,7 +39,7 @@ function niceTicks(lo, hi, count) {
   return ticks;
 }
 
-export function renderChart(chart, points) {
+export function renderChart(chart, points, all = SERIES) {
   chart.replaceChildren();
   const width = chart.parentElement.clientWidth;
   const height = 250;
@@ -54,7 +63,7 @@ export function renderChart(chart, points) {
     svg('text', { class: 'empty-note', x: width / 2, y: height / 2, 'text-anchor': 'middle' }, chart, 'no scores yet');
     return;
   }
-  const series = activeSeries(points);
+  const series = activeSeries(points, all);
   series.forEach((line) => {
     const { key } = line;
     let d = '';
@@ -88,8 +97,8 @@ export function renderChart(chart, points) {
   overlay.addEventListener('mouseleave', () => { crosshair.setAttribute('visibility', 'hidden'); tooltip.hide(); });
 }
 
-export function renderChartLegend(container, points = []) {
-  container.replaceChildren(...activeSeries(points).map((line) => html('span', { className: 'key' }, [
+export function renderChartLegend(container, points = [], all = SERIES) {
+  container.replaceChildren(...activeSeries(points, all).map((line) => html('span', { className: 'key' }, [
     html('span', { className: `swatch-line ${lineClass(line)}` }), document.createTextNode(line.label),
   ])));
 }

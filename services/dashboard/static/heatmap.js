@@ -1,8 +1,14 @@
 // The three heat maps (learned CMI, ground truth, comparison) with linked hover, and the CMI colour bar.
+// The local-graph panel reuses them for one example transition: its graph-like object carries
+// `labels` (score name and unit, what a found edge is called) where they differ from the global graph's.
 
 import { $, fmt, html, svg, tooltip } from './dom.js';
 
 const BLUES = [[247, 251, 255], [198, 219, 239], [107, 174, 214], [33, 113, 181], [8, 48, 107]];
+const GLOBAL_IDS = { learned: 'heatmap-learned', truth: 'heatmap-truth', compare: 'heatmap-compare' };
+const GLOBAL_LABELS = { score: 'CMI', unit: 'nats', learned: 'learned' };
+
+const labelsOf = (graph) => ({ ...GLOBAL_LABELS, ...graph.labels });
 
 // CMI on a log scale: a decade below the threshold is the lightest blue.
 function cmiDomain(graph) {
@@ -116,13 +122,13 @@ class Heatmap {
   }
 }
 
-/** The three heat maps of one graph; hovering a cell highlights it, its row and column in all three. */
+/** The three heat maps of one graph; hovering a cell highlights it, its row and column in all three.
+ *  `ids` names the three SVG elements by mode (learned, truth, compare). */
 export class GraphViews {
-  constructor(legend) {
+  constructor(legend, ids = GLOBAL_IDS) {
     this.graph = null;
     this.legend = legend;
-    this.maps = [['heatmap-learned', 'learned'], ['heatmap-truth', 'truth'], ['heatmap-compare', 'compare']]
-      .map(([id, mode]) => new Heatmap(id, mode, this));
+    this.maps = Object.entries(ids).map(([mode, id]) => new Heatmap(id, mode, this));
   }
 
   render(graph) {
@@ -135,14 +141,16 @@ export class GraphViews {
     const graph = this.graph;
     if (!graph) return;
     const c = graph.cells[i][j];
+    const labels = labelsOf(graph);
     this.maps.forEach((m) => m.highlight(i, j));
     const yesNo = (v) => (v == null ? 'unknown' : v ? 'edge' : 'no edge');
+    const unit = labels.unit ? ` ${labels.unit}` : '';
     tooltip.show(`${graph.cause_names[j]} → ${graph.factor_names[i]}`, [
       ['cause (t)', graph.cause_names[j]],
       ['effect (t+1)', graph.factor_names[i]],
-      ['CMI', `${fmt.cmi(c.cmi)} nats`],
-      ['threshold ε', `${fmt.cmi(graph.threshold)} nats`],
-      ['learned', yesNo(c.learned)],
+      [labels.score, `${fmt.cmi(c.cmi)}${unit}`],
+      ['threshold ε', `${fmt.cmi(graph.threshold)}${unit}`],
+      [labels.learned, yesNo(c.learned)],
       ['truth', yesNo(c.truth)],
     ], c.outcome, event.clientX, event.clientY);
   }
@@ -164,20 +172,22 @@ export class GraphViews {
 
 function renderColorbar(graph, container) {
   const domain = cmiDomain(graph);
+  const labels = labelsOf(graph);
   const width = 220;
   const bar = svg('svg', { class: 'colorbar', width: width + 8, height: 44 });
-  const gradient = svg('linearGradient', { id: 'cmi-gradient' }, svg('defs', {}, bar));
+  const gradientId = `${container.id}-gradient`; // one per colour bar: a hidden panel's would not paint
+  const gradient = svg('linearGradient', { id: gradientId }, svg('defs', {}, bar));
   BLUES.forEach((_, k) => svg('stop', {
     offset: `${(100 * k) / (BLUES.length - 1)}%`, 'stop-color': blue(k / (BLUES.length - 1)).css,
   }, gradient));
-  svg('rect', { x: 4, y: 14, width, height: 10, rx: 2, fill: 'url(#cmi-gradient)', stroke: '#e2e7ee' }, bar);
+  svg('rect', { x: 4, y: 14, width, height: 10, rx: 2, fill: `url(#${gradientId})`, stroke: '#e2e7ee' }, bar);
   const at = (value) => 4 + cmiPosition(value, domain) * width;
   svg('text', { x: 4, y: 38 }, bar, `≤ ${fmt.cmi(domain[0])}`);
-  svg('text', { x: 4 + width, y: 38, 'text-anchor': 'end' }, bar, `${fmt.cmi(domain[1])} nats`);
+  svg('text', { x: 4 + width, y: 38, 'text-anchor': 'end' }, bar, `${fmt.cmi(domain[1])} ${labels.unit}`.trim());
   svg('line', { class: 'threshold', x1: at(graph.threshold), x2: at(graph.threshold), y1: 11, y2: 27 }, bar);
   svg('text', { x: at(graph.threshold), y: 8, 'text-anchor': 'middle' }, bar, `ε = ${fmt.cmi(graph.threshold)}`);
   const dot = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
   svg('circle', { cx: 6, cy: 6, r: 3, fill: '#0f172a' }, dot.firstChild);
-  dot.append('learned edge (CMI ≥ ε)');
+  dot.append(`${labels.learned} edge (${labels.score} ≥ ε)`);
   container.replaceChildren(bar, dot);
 }
