@@ -64,3 +64,32 @@ class ReplayBuffer:
         for mine, theirs in zip((self.state, self.action, self.next_state), arrays):
             mine[:n] = theirs[:n]
         self.size, self.cursor, self.added = n, cursor % self.capacity, int(saved["added"])
+
+
+class LabelledReplay(ReplayBuffer):
+    """A ring of (state, action, next_state) rows, each with its true local graph (uint8 ``[d, d + 1]``)."""
+
+    def __init__(self, capacity: int, state_dim: int, action_dim: int, num_factors: int, seed: int = 0) -> None:
+        super().__init__(capacity, state_dim, action_dim, seed)
+        self.graphs = np.zeros((capacity, num_factors, num_factors + 1), np.uint8)
+
+    def add_labelled(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray, graphs: np.ndarray) -> None:
+        n = min(len(state), self.capacity)
+        index = (self.cursor + np.arange(n)) % self.capacity
+        self.graphs[index] = graphs[-n:]
+        self.add(state, action, next_state)
+
+    def rows(self, index: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray]:
+        """Transitions ``index`` (rows below :attr:`size`) with their graphs."""
+        return (*(torch.from_numpy(a[index]) for a in (self.state, self.action, self.next_state)), self.graphs[index])
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "graphs": torch.from_numpy(self.graphs[: self.size].copy())}
+
+    def load_state_dict(self, saved: dict) -> None:
+        rows, cursor, added = int(saved["state"].shape[0]), int(saved["cursor"]), int(saved["added"])
+        graphs = saved["graphs"].numpy()
+        if added > rows and rows < self.capacity:
+            graphs = np.roll(graphs, -cursor, axis=0)
+        super().load_state_dict(saved)
+        self.graphs[: self.size] = graphs[: self.size]

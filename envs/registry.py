@@ -22,13 +22,34 @@ from proto.settings import doc
 TRUTH_KINDS = ("global", "local", "global+local", "none")
 
 
+def task_names() -> tuple[str, ...]:
+    """Every task some environment poses, plus ``""`` (none): the values ``--task`` takes."""
+    return ("",) + tuple(sorted({task for entry in ENVS.values() for task in entry.tasks}))
+
+
 @dataclass(frozen=True)
 class EnvOptions:
-    """Environment construction options a run can set; each environment takes the ones it lists."""
+    """Environment construction options a run can set; each environment takes the ones it lists.
 
+    For ``task``, ``episode_length`` and ``room_size`` the empty value (``""``, 0) means the
+    environment's own default and is not passed."""
+
+    task: str = doc("", "task the environment poses ('' none: reward-free); a task may name another env "
+                        "(Chemical's match: chemical-match); see each env's tasks in docs/environments.md",
+                    choices=task_names)
     graph: str = doc("full", "Chemical object graph: collider, chain, full or a path to a DAG JSON file")
     num_objects: int = doc(10, "Chemical: number of objects")
     cpt_seed: int = doc(0, "Chemical: seed of the fixed conditional probability tables (same for all workers)")
+    episode_length: int = doc(0, "steps per episode (0: the environment's default)")
+    room_size: int = doc(0, "household tasks and 2D Minecraft: side of the room in cells (0: the env's default)")
+
+    def __post_init__(self) -> None:
+        if self.episode_length < 0 or self.room_size < 0:
+            raise ValueError("episode_length and room_size must be >= 0 (0: the environment's default)")
+
+
+DEFAULTED = ("task", "episode_length", "room_size")
+"""Options whose empty value means "the environment's default" (not passed to the constructor)."""
 
 
 @dataclass(frozen=True)
@@ -48,12 +69,17 @@ class EnvEntry:
     constant_factors: tuple[str, ...] = ()
     """Factors constant by construction: their columns are left out of the identifiable scores."""
     tasks: Mapping[str, str] = field(default_factory=dict)
-    """Task name -> the registered environment that poses it (``--task``)."""
+    """Task name -> the registered environment that poses it (``--task``; itself, or another env)."""
+    task_kwarg: str = ""
+    """Constructor keyword that takes the task name (``""``: the task is the env itself)."""
     skills: str = ""
     """``module:Class`` of the env's skill runner (a policy over skill options; ``""``: none). Its
     class attribute ``OPTION_NAMES`` lists the options, and, with ``skill_collection``, a uniform
     choice among them is the default collection policy."""
     skill_collection: bool = False
+    local_scoring: bool = False
+    """Whether runs score local-graph estimators here by default (the workers then send every step's
+    true local graph; ``--worker-local-graphs true`` asks for it on any env with local truth)."""
     evaluation: str = ""
     """Post-run evaluation suite that applies (``chemical``: chapter 3's k-step prediction and Match)."""
     check: Callable[[EnvOptions], None] | None = None
@@ -69,7 +95,11 @@ class EnvEntry:
 
     def kwargs(self, options: EnvOptions) -> dict[str, Any]:
         """The constructor keyword arguments these run options give this env."""
-        return {name: getattr(options, name) for name in self.options}
+        out = {name: getattr(options, name) for name in self.options
+               if not (name in DEFAULTED and not getattr(options, name))}
+        if self.task_kwarg and options.task:
+            out[self.task_kwarg] = options.task
+        return out
 
     def env_class(self) -> type[gym.Env]:
         return _load(self.entry_point)
@@ -92,7 +122,20 @@ def _check_chemical(options: EnvOptions) -> None:
     load_dag(options.graph, options.num_objects)
 
 
-_CHEMICAL = ("graph", "num_objects", "cpt_seed")
+def _check_by_building(entry_name: str) -> Callable[[EnvOptions], None]:
+    """An option check that builds the (cheap) environment: its constructor validates everything."""
+    def check(options: EnvOptions) -> None:
+        entry = ENVS[entry_name]
+        entry.make(**entry.kwargs(options)).close()
+    return check
+
+
+_CHEMICAL = ("graph", "num_objects", "cpt_seed", "episode_length")
+_GRID = ("episode_length", "room_size")
+_THAWING = ("thaw-fish", "thaw-olive", "thaw-date", "thaw-all")
+_CLEANING = ("soak-rag", "clean-car", "clean-rag")
+_MINECRAFT = ("wood", "stick", "wood_pickaxe", "stone", "stone_pickaxe", "iron_ore", "iron", "iron_pickaxe", "diamond")
+_HOUSEHOLD = dict(truth="global+local", local_scoring=True)
 
 ENVS: dict[str, EnvEntry] = {e.name: e for e in (
     EnvEntry("chemical", "causeway/Chemical-v0", "envs.chemical:ChemicalEnv",
@@ -105,19 +148,31 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              check=_check_chemical),
     EnvEntry("manipulation", "causeway/Manipulation-v0", "envs.manipulation:ManipulationEnv",
              "robosuite manipulation scene (ch. 3.3.1): UR5e, movable/fixed/random-walk cubes, markers",
-             truth="global+local", constant_factors=manipulation_layout.CONSTANT_FACTORS,
-             skills="envs.skills:SkillPolicy", skill_collection=True),
+             options=("episode_length",), truth="global+local",
+             constant_factors=manipulation_layout.CONSTANT_FACTORS,
+             skills="envs.skills:SkillPolicy", skill_collection=True, local_scoring=True),
+    EnvEntry("installing-printer", "causeway/InstallingPrinter-v0", "envs.household.printer:InstallingPrinterEnv",
+             "Mini-BEHAVIOR Installing Printer (ch. 6): pick the printer, put it on the table, turn it on",
+             options=_GRID, constant_factors=("table.clean",), check=_check_by_building("installing-printer"),
+             **_HOUSEHOLD),
+    EnvEntry("thawing", "causeway/Thawing-v0", "envs.household.thawing:ThawingEnv",
+             "Mini-BEHAVIOR Thawing (ch. 5-6): thaw the fish, olive or date from the fridge in the sink",
+             options=_GRID, tasks=dict.fromkeys(_THAWING, "thawing"), task_kwarg="task",
+             check=_check_by_building("thawing"), **_HOUSEHOLD),
+    EnvEntry("cleaning-car", "causeway/CleaningCar-v0", "envs.household.cleaning_car:CleaningCarEnv",
+             "Mini-BEHAVIOR Cleaning Car (ch. 6; CarWash of ch. 5): soak the rag, clean the car, clean the rag",
+             options=_GRID, tasks=dict.fromkeys(_CLEANING, "cleaning-car"), task_kwarg="task",
+             check=_check_by_building("cleaning-car"), **_HOUSEHOLD),
+    EnvEntry("minecraft2d", "causeway/Minecraft2D-v0", "envs.minecraft2d:Minecraft2DEnv",
+             "2D Minecraft (ch. 5, after Andreas et al. 2017): gather and craft up a technology tree",
+             options=_GRID, tasks=dict.fromkeys(_MINECRAFT, "minecraft2d"), task_kwarg="goal",
+             check=_check_by_building("minecraft2d"), **_HOUSEHOLD),
 )}
 """Registered environments by name (the values ``--env`` takes)."""
 
 
 def env_names() -> tuple[str, ...]:
     return tuple(ENVS)
-
-
-def task_names() -> tuple[str, ...]:
-    """Every task some environment poses, plus ``""`` (none): the values ``--task`` takes."""
-    return ("",) + tuple(sorted({task for entry in ENVS.values() for task in entry.tasks}))
 
 
 def env_entry(name: str) -> EnvEntry:

@@ -19,6 +19,10 @@ class GraphEvaluatorConfig(ServiceConfig):
     cmi_ema: float = doc(0.999, "weight of the previous edge-score estimate per learner update since it "
                          "(the reference's EMA): an evaluation k updates later keeps cmi_ema**k of it")
     min_interval_s: float = doc(2.0, "minimum seconds between evaluations")
+    local_capacity: int = doc(10_000, "held-out transitions kept with their true local graphs (for methods with a "
+                                      "local-graph estimator, on envs whose workers send local graphs)")
+    local_samples: int = doc(1_000, "held-out transitions whose local graphs are scored per evaluation")
+    local_examples: int = doc(4, "example transitions each local-graph report carries for display")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -26,3 +30,5 @@ class GraphEvaluatorConfig(ServiceConfig):
             raise ValueError(f"cmi_ema must be in [0, 1), got {self.cmi_ema}")
         if self.eval_samples <= 0 or self.min_heldout < 1 or self.heldout_capacity < self.min_heldout:
             raise ValueError("eval_samples and min_heldout must be positive and heldout_capacity >= min_heldout")
+        if self.local_capacity < 1 or self.local_samples < 1 or not 0 <= self.local_examples <= 64:
+            raise ValueError("local_capacity and local_samples must be >= 1, local_examples in [0, 64]")

@@ -18,8 +18,9 @@ from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
 from proto.codec import check_fits
-from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
+from proto.messages import EnvSpec, GraphReport, LocalGraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.graph_evaluator.local import LocalGraphScorer
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
 def constant_factor_indices(spec: EnvSpec) -> tuple[int, ...]:
@@ -39,6 +40,10 @@ class GraphEvaluatorCore:
         self.kind = self.method.name
         self.constant_factors = constant_factor_indices(spec)
         self.heldout = ReplayBuffer(cfg.heldout_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
+        self.local = (LocalGraphScorer(spec, self.method.local_graph, self.kind, cfg.local_capacity, cfg.local_samples,
+                                       cfg.local_examples, cfg.seed + 1)
+                      if self.method.local_graph is not None else None)
+        """Local-graph scoring, for a method with a local-graph estimator (fed by batches with true local graphs)."""
         self.model: nn.Module | None = None
         self.model_config = ""
         self.weights: Weights | None = None
@@ -54,6 +59,8 @@ class GraphEvaluatorCore:
         check_fits(self.spec, batch)
         keep = heldout_mask(batch.worker_id, batch.episode_id, self.cfg.heldout_fraction)
         self.heldout.add(batch.state[keep], batch.action[keep], batch.next_state[keep])
+        if self.local is not None:
+            self.local.add(batch, keep)
         return int(keep.sum())
 
     def load_weights(self, weights: Weights) -> None:
@@ -74,6 +81,16 @@ class GraphEvaluatorCore:
     def due(self) -> bool:
         return (self.method.global_graph is not None and self.weights is not None
                 and self.weights.version > self.evaluated_version and self.heldout.size >= self.cfg.min_heldout)
+
+    @property
+    def local_due(self) -> bool:
+        return self.local is not None and self.local.due(self.weights, self.cfg.min_heldout)
+
+    def evaluate_local(self, every: bool = False) -> LocalGraphReport:
+        """The method's local graphs of held-out transitions scored against their true local graphs
+        (``every``: all of the kept ones, for the run's final report)."""
+        assert self.local is not None and self.model is not None and self.weights is not None
+        return self.local.evaluate(self.model, self.weights, every)
 
     def edge_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
         """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions."""
@@ -139,6 +156,8 @@ class GraphEvaluatorCore:
                  "evaluated_version": self.evaluated_version, "evaluated_updates": self.evaluated_updates}
         if self.cmi_ema is not None:
             state["cmi_ema"] = torch.from_numpy(self.cmi_ema)
+        if self.local is not None:
+            state["local"] = self.local.state_dict()
         save_checkpoint(state, path)
 
     def restore(self, path: Path) -> bool:
@@ -151,4 +170,6 @@ class GraphEvaluatorCore:
         self.evaluated_updates = int(saved.get("evaluated_updates", 0))
         if "cmi_ema" in saved:
             self.cmi_ema = saved["cmi_ema"].numpy()
+        if self.local is not None and "local" in saved:
+            self.local.load_state_dict(saved["local"])
         return True

@@ -8,13 +8,14 @@ import time
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
 from causal.graph_metrics import REPORTED_SCORES
-from proto.messages import GraphReport, TransitionBatch, Weights
+from proto.messages import GraphReport, LocalGraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.shell import ServiceShell, service_main
 
 SERVICE = "graph-evaluator"
+LOCAL_SCORES = ("roc_auc", "pr_auc", "best_f1", "f1", "positive_rate")
 log = logging.getLogger(SERVICE)
 
 
@@ -32,6 +33,20 @@ class _Metrics:
         self.env_steps = m.gauge("causeway_graph_env_steps", "Env steps behind the last report")
         self.eval_seconds = m.histogram("causeway_graph_eval_seconds", "Duration of one all-pairs edge-score evaluation",
                                         (0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32))
+        self.local_scores = {name: m.gauge(f"causeway_local_graph_{name}_ratio",
+                                           f"Local graphs of held-out transitions: {name} against their true local graphs")
+                             for name in LOCAL_SCORES}
+        self.local_reports = m.counter("causeway_local_graph_reports", "LocalGraphReports published")
+        self.local_heldout = m.gauge("causeway_local_graph_heldout_transitions",
+                                     "Held-out transitions kept with their true local graphs")
+        self.local_seconds = m.histogram("causeway_local_graph_eval_seconds", "Duration of one local-graph evaluation",
+                                         (0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32))
+
+    def observe_local(self, report: LocalGraphReport, seconds: float) -> None:
+        for name, gauge in self.local_scores.items():
+            gauge.set(report.metrics[name])
+        self.local_reports.inc()
+        self.local_seconds.observe(seconds)
 
     def observe(self, report: GraphReport) -> None:
         for name, gauge in self.scores.items():
@@ -56,6 +71,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
     shell.subscribe(topics.transitions(cfg.run_id), transitions)
     shell.subscribe(topics.weights(cfg.run_id, cfg.method), weights)
     latest_graph = shell.transport.serve_latest(topics.graph(cfg.run_id, cfg.method))
+    latest_local = shell.transport.serve_latest(topics.local(cfg.run_id, cfg.method))
     spec = shell.wait_for_spec()
     if spec is None:
         shell.close()
@@ -63,7 +79,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
     core = GraphEvaluatorCore(cfg, spec)
     ckpt = shell.resume(core)
     _catch_up(shell, core, cfg)
-    last_eval, last_ckpt = 0.0, time.monotonic()
+    last_eval, last_local, last_ckpt = 0.0, 0.0, time.monotonic()
     try:
         while not shell.stopping.is_set():
             shell.poll_control()
@@ -80,17 +96,27 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
                 latest_graph.set(encode(report))
                 metrics.observe(report)
                 last_eval = now
+            if not shell.paused and core.local_due and now - last_local >= cfg.min_interval_s:
+                t0 = time.perf_counter()
+                local = core.evaluate_local()
+                latest_local.set(encode(local))
+                metrics.observe_local(local, time.perf_counter() - t0)
+                last_local = now
+            if core.local is not None:
+                metrics.local_heldout.set(core.local.ring.size)
             if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
                 core.checkpoint(ckpt)
                 shell.checkpoint_requested, last_ckpt = False, now
             shell.beat({"heldout": core.heldout.size, "evaluated_version": core.evaluated_version,
                         "reports": len(core.history),
-                        **(core.history[-1] if core.history else {})})
+                        **(core.history[-1] if core.history else {}),
+                        **(core.local.history[-1] if core.local is not None and core.local.history else {})})
             time.sleep(0.02)
     finally:
         core.checkpoint(ckpt)
         log.info("stopped after %d reports; checkpoint %s", len(core.history), ckpt)
         latest_graph.close()
+        latest_local.close()
         shell.close()
 
 

@@ -141,7 +141,8 @@ def _converter(tp: Any):
 def settings_parser(cls: type, prog: str | None = None) -> tuple[argparse.ArgumentParser, list[Flag]]:
     """The argparse parser of ``cls``'s flags (no abbreviations), and the flags it holds."""
     description = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else None
-    parser = argparse.ArgumentParser(prog=prog, description=description, allow_abbrev=False)
+    parser = argparse.ArgumentParser(prog=prog, description=description, allow_abbrev=False,
+                                     usage="%(prog)s [--help] [--FLAG VALUE ...]")
     table = flags(cls)
     groups: dict[str, Any] = {}
     for flag in table:

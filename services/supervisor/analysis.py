@@ -16,12 +16,13 @@ from typing import Any, TextIO
 
 from causal.methods import get_method
 from envs.registry import env_entry
-from proto.messages import GraphReport
+from proto.messages import GraphReport, LocalGraphReport
 from services.policy_learner.config import PolicyLearnerConfig
 from services.supervisor import evaluation
 from services.supervisor import report as reporting
+from services.supervisor import report_local as local_report
 from services.supervisor.config import RunConfig
-from services.supervisor.final_graph import add_final_graph, final_graph
+from services.supervisor.final_graph import add_final_graph, add_final_local_graph, final_reports
 from services.supervisor.wiring import env_kwargs, run_env_spec, service_configs
 
 log = logging.getLogger("supervisor")
@@ -38,18 +39,27 @@ class RunRecord:
     policy_stats: dict[tuple[str, str], dict[str, float]] | None = None
     policy_timeline: list[tuple[float, str, str, float]] = field(default_factory=list)
     failure: str = ""
+    local_report: LocalGraphReport | None = None
+    local_history: list[dict[str, float]] = field(default_factory=list)
 
 
 def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) -> dict[str, Any]:
     """Write ``summary.json`` and the plots; returns the summary's content."""
     report = record.report
     content = reporting.summary(report, record.facts, record.history)
-    ok = report is not None and cfg.evaluate and not record.failure
-    final = _final_graph(cfg, run_dir, stream) if ok else None
+    ok = cfg.evaluate and not record.failure and (report is not None or record.local_report is not None)
+    final, final_local = _final_reports(cfg, run_dir, stream) if ok else (None, None)
     if record.policy_stats is not None:
         content["policy"] = reporting.policy_summary(record.policy_stats, record.policy_timeline)
         reporting.plot_policy(content["policy"], run_dir / "policy.png")
-    if ok and evaluation.applies(env_entry(cfg.env), get_method(cfg.method)):
+    if record.local_report is not None:
+        content["local_graph"] = {"evaluation": "last live report", **local_report.local_fields(record.local_report)}
+        content["local_history"] = record.local_history
+        local_report.plot_examples(record.local_report, run_dir / "local_graph.png")
+        local_report.plot_curve(record.local_history, run_dir / "local_learning_curve.png")
+    if final_local is not None:
+        add_final_local_graph(content, final_local, run_dir)
+    if ok and report is not None and evaluation.applies(env_entry(cfg.env), get_method(cfg.method)):
         content["evaluation"] = _evaluate(cfg, run_dir, report, stream)
     if report is not None:
         reporting.plot_graphs(report, run_dir / "graph.png")
@@ -63,23 +73,26 @@ def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) ->
     return content
 
 
-def _final_graph(cfg: RunConfig, run_dir: Path, stream: TextIO) -> GraphReport | None:
-    """The final model's graph on all held-out data (:mod:`services.supervisor.final_graph`)."""
+def _final_reports(cfg: RunConfig, run_dir: Path, stream: TextIO) -> tuple[GraphReport | None, LocalGraphReport | None]:
+    """The final model's graph on all held-out data and its local graphs on every held-out
+    transition with a true local graph (:mod:`services.supervisor.final_graph`)."""
     stream.write("final graph: edge scores of the final model on every held-out transition ...\n")
     try:
-        final = final_graph(run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
+        final, local = final_reports(run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
     except Exception:  # noqa: BLE001 - the run itself is done
         log.exception("final graph evaluation failed")
-        return None
+        return None, None
     if final is not None:
         stream.write(f"final graph: {final.num_heldout:,} held-out transitions, {reporting.score_line(final.metrics)}\n")
-    return final
+    if local is not None:
+        stream.write(f"final local graphs: {local.num_transitions:,} transitions, {local_report.score_line(local)}\n")
+    return final, local
 
 
 def _evaluate(cfg: RunConfig, run_dir: Path, report: GraphReport, stream: TextIO) -> dict[str, Any]:
     """The env's post-run evaluation suite on this run's final models (:mod:`services.supervisor.evaluation`);
     a failure is recorded in the summary."""
-    stream.write("evaluating the run's model (prediction ID/OOD" + (", Match" if cfg.task == "match" else "") + ") ...\n")
+    stream.write("evaluating the run's model (prediction ID/OOD" + (", Match" if cfg.env_options.task == "match" else "") + ") ...\n")
     try:
         policy_cfg = service_configs(cfg, "")["policy-learner"]
         policy = load_policy(run_dir, policy_cfg, cfg) if cfg.collector != "random" else None
@@ -114,6 +127,9 @@ def print_summary(content: dict) -> None:
     keys = ("env", "method", "graph", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
             "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
     shown = {k: content.get(k) for k in keys}
+    if "local_graph" in content:
+        local = content["local_graph"]
+        shown["local_graph"] = {k: local.get(k) for k in ("evaluation", "num_transitions", "roc_auc", "pr_auc", "best_f1")}
     if "final_graph" in content:
         final = content["final_graph"]
         shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "accuracy", "f1", "best_threshold_f1",

@@ -5,7 +5,7 @@ and every method's settings, each declared once, where it belongs.
   ``--checkpoint-every-s``): :class:`services.runtime.config.RunSettings`.
 * A method's hyper-parameters: its own config class (``causal/``), flags ``--<method>-<field>``
   (``--cdl-lr``, ``--cdl-lr-decay-updates``, ...).
-* Environment construction options (``--graph``, ``--num-objects``, ``--cpt-seed``):
+* Environment construction options (``--task``, ``--graph``, ``--num-objects``, ``--cpt-seed``, ...):
   :class:`envs.registry.EnvOptions`.
 * A service's own settings: its config class, flags ``--<service>-<field>`` (``--learner-replay-capacity``,
   ``--evaluator-min-interval-s``, ``--worker-max-steps-per-second``, ``--policy-hide``, ``--intrinsic-eta``).
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from causal.graph_metrics import REPORTED_SCORES
 from causal.intrinsic import reward_names
-from envs.registry import EnvOptions, env_names, task_names
+from envs.registry import EnvOptions, env_names
 from proto.settings import section
 from services.dynamics_learner.config import DynamicsLearnerConfig, MethodConfigs
 from services.env_worker.config import EnvWorkerConfig
@@ -40,8 +40,6 @@ class RunConfig(RunSettings):
     """causeway run: start a router and every service locally, learn, report."""
 
     env: str = doc("chemical", "environment (envs.registry)", choices=env_names)
-    task: str = doc("", "task on the environment ('' none: reward-free); a task may name the env that poses it "
-                        "(match: chemical-match)", choices=task_names)
     workers: int = doc(1, "number of env-worker processes")
     max_seconds: float = doc(900.0, "stop after this many seconds of wall time (0: no limit)")
     max_env_steps: int = doc(0, "stop after this many env steps (0: no limit); with --learner-updates-per-env-step "

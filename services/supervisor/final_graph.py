@@ -23,22 +23,22 @@ from pathlib import Path
 from typing import Any
 
 from causal.method import export_tensors
-from proto.messages import EnvSpec, GraphReport, Weights
+from proto.messages import EnvSpec, GraphReport, LocalGraphReport, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.checkpoint import load_checkpoint
 from services.supervisor import report as reporting
+from services.supervisor import report_local as local_report
 from services.supervisor.evaluation import model_from_checkpoint
 from services.supervisor.wiring import run_env_spec, service_configs
 
 
-def final_graph(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec) -> GraphReport | None:
-    """The final model's graph on the whole held-out set, or None without both checkpoints (or for a
-    method without a global graph)."""
+def final_core(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec) -> GraphEvaluatorCore | None:
+    """The graph-evaluator's core restored from the run's checkpoint, holding the learner's final
+    model; None without both checkpoints or without held-out data."""
     learner = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
     core = GraphEvaluatorCore(evaluator_cfg, spec)
-    if (learner is None or core.method.global_graph is None
-            or not core.restore(run_dir / "checkpoints" / "graph-evaluator-0.pt") or not core.heldout.size):
+    if learner is None or not core.restore(run_dir / "checkpoints" / "graph-evaluator-0.pt") or not core.heldout.size:
         return None
     model = model_from_checkpoint(learner)
     config = json.loads(learner["fingerprint"])["model"]
@@ -46,7 +46,25 @@ def final_graph(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpe
                               config_json=json.dumps(config, sort_keys=True),
                               tensors=export_tensors(model), updates=int(learner["trainer"]["updates"]),
                               env_steps=int(learner["env_steps"])))
-    return core.evaluate_final()
+    return core
+
+
+def final_reports(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig,
+                  spec: EnvSpec) -> tuple[GraphReport | None, LocalGraphReport | None]:
+    """The final model's global graph on the whole held-out set and its local graphs on every kept
+    held-out transition with a true local graph; each None where the method or the data has none."""
+    core = final_core(run_dir, evaluator_cfg, spec)
+    if core is None:
+        return None, None
+    graph = core.evaluate_final() if core.method.global_graph is not None else None
+    local = core.evaluate_local(every=True) if core.local is not None and core.local.ring.size else None
+    return graph, local
+
+
+def final_graph(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec) -> GraphReport | None:
+    """The final model's graph on the whole held-out set (:func:`final_reports`)."""
+    core = final_core(run_dir, evaluator_cfg, spec)
+    return core.evaluate_final() if core is not None and core.method.global_graph is not None else None
 
 
 def add_final_graph(content: dict[str, Any], final: GraphReport, run_dir: Path) -> None:
@@ -57,8 +75,18 @@ def add_final_graph(content: dict[str, Any], final: GraphReport, run_dir: Path) 
     reporting.plot_object_graphs(final, run_dir / "object_graph.png")
 
 
+def add_final_local_graph(content: dict[str, Any], final: LocalGraphReport, run_dir: Path) -> None:
+    """``local_graph`` (the final model's) into a summary's ``content``, the live one kept beside it."""
+    if "local_graph" in content:
+        content["local_graph_live"] = content["local_graph"]
+    content["local_graph"] = {"evaluation": "final model, every kept held-out transition with a true local graph",
+                              **local_report.local_fields(final)}
+    local_report.plot_examples(final, run_dir / "local_graph.png", "final model")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``causeway final-graph --run-dir runs/X``: compute a finished run's final graph into its summary."""
+    """``causeway final-graph --run-dir runs/X``: compute a finished run's final graph (and final local
+    graph scores) into its summary."""
     from services.supervisor.config import load_run_config
 
     p = argparse.ArgumentParser(prog="causeway final-graph", description=__doc__,
@@ -73,12 +101,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"causeway final-graph: {args.run_dir} is not a finished run: {exc}", file=sys.stderr)
         return 2
     started = time.perf_counter()
-    final = final_graph(args.run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
-    if final is None:
+    final, local = final_reports(args.run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
+    if final is None and local is None:
         print(f"causeway final-graph: {args.run_dir} has no learner and evaluator checkpoints", file=sys.stderr)
         return 1
-    add_final_graph(content, final, args.run_dir)
+    seconds = time.perf_counter() - started
+    if final is not None:
+        add_final_graph(content, final, args.run_dir)
+        print(f"causeway final-graph: {final.num_heldout:,} held-out transitions ({seconds:.0f}s): "
+              + reporting.score_line(final.metrics))
+    if local is not None:
+        add_final_local_graph(content, local, args.run_dir)
+        print(f"causeway final-graph: local graphs of {local.num_transitions:,} held-out transitions: "
+              + local_report.score_line(local))
     reporting.write_summary(summary_path, content)
-    print(f"causeway final-graph: {final.num_heldout:,} held-out transitions ({time.perf_counter() - started:.0f}s): "
-          + reporting.score_line(final.metrics) + f"; wrote {summary_path}")
+    print(f"causeway final-graph: wrote {summary_path}")
     return 0

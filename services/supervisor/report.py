@@ -133,6 +133,12 @@ def _comparison(learned: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return code
 
 
+def comparison_heatmap(ax, learned: np.ndarray, truth: np.ndarray, title: str, cols: list[str],
+                       rows: tuple[str, ...]) -> None:
+    """A learned 0/1 graph against the truth on ``ax``: TP green, FP red, FN orange."""
+    _heatmap(ax, _comparison(learned, truth), None, title, cols, rows)
+
+
 def _heatmap(ax, matrix: np.ndarray, cmap: str | None, title: str, cols: list[str], rows: tuple[str, ...]) -> None:
     if cmap is None:
         from matplotlib.colors import ListedColormap

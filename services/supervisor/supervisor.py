@@ -24,7 +24,7 @@ from pathlib import Path
 from envs.registry import env_entry
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
-from proto.messages import Control, GraphReport, ServiceStats
+from proto.messages import Control, GraphReport, LocalGraphReport, ServiceStats
 from services.bus.router import start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from services.runtime.config import to_environ, write_config
@@ -50,6 +50,8 @@ class Supervisor:
                                  every_s=10.0 if self.cfg.progress else 1e9)
         self.history: list[dict[str, float]] = []
         self.last_report: GraphReport | None = None
+        self.last_local: LocalGraphReport | None = None
+        self.local_history: list[dict[str, float]] = []
         self.stop_reason = ""
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -80,6 +82,7 @@ class Supervisor:
         self.bus = ZenohTransport(self.connect)
         self.bus.subscribe(topics.stats(self.cfg.run_id), self._on_stats)
         self.bus.subscribe(topics.graph(self.cfg.run_id), self._on_graph)
+        self.bus.subscribe(topics.local(self.cfg.run_id), self._on_local)
         for target in ("supervisor", "all"):
             self.bus.subscribe(topics.control(self.cfg.run_id, target), self._on_control)
         self.bus.declare_token(topics.alive(self.cfg.run_id, "supervisor", "0"))
@@ -178,6 +181,17 @@ class Supervisor:
                                  "updates": report.updates, **report.metrics})
         self.progress.on_report(report)
 
+    def _on_local(self, key: str, payload: bytes) -> None:
+        try:
+            report = decode(payload, LocalGraphReport)
+        except ProtocolError:
+            log.warning("bad local-graph report on %s", key)
+            return
+        with self._lock:
+            self.last_local = report
+            self.local_history.append({"time": time.monotonic() - self.progress.started, "env_steps": report.env_steps,
+                                       "updates": report.updates, **report.metrics})
+
     def run(self) -> dict:
         """Start everything, supervise until a stop condition, then stop and report."""
         started = time.monotonic()
@@ -249,7 +263,8 @@ class Supervisor:
                  "git_revision": git_revision()}
         with self._lock:
             record = RunRecord(facts, self.last_report, list(self.history), failure=self.failure,
-                               policy_timeline=list(self.policy_timeline))
+                               policy_timeline=list(self.policy_timeline), local_report=self.last_local,
+                               local_history=list(self.local_history))
             if cfg.collector != "random":
                 record.policy_stats = {ident: dict(s.values) for ident, s in self.progress.stats.items()}
         return analyse(cfg, self.run_dir, record, self.progress.stream)

@@ -37,11 +37,12 @@ def resolve(cfg: RunConfig) -> RunConfig:
         method = get_method(cfg.method)
     except KeyError as exc:
         raise ValueError(exc.args[0]) from None
-    if cfg.task:
-        if cfg.task not in entry.tasks:
-            raise ValueError(f"environment {cfg.env!r} poses no task {cfg.task!r}; its tasks: "
+    task = cfg.env_options.task
+    if task:
+        if task not in entry.tasks:
+            raise ValueError(f"environment {cfg.env!r} poses no task {task!r}; its tasks: "
                              f"{', '.join(entry.tasks) or 'none'}")
-        cfg = dataclasses.replace(cfg, env=entry.tasks[cfg.task])
+        cfg = dataclasses.replace(cfg, env=entry.tasks[task])
         entry = _entry(cfg.env)
     check_options(cfg.env, cfg.env_options)
     _check_policy(cfg, method.intrinsic)
@@ -117,7 +118,15 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
     return dataclasses.replace(cfg.worker, **shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect,
                                run_dir=cfg.run_dir, metrics_port=port, instance=str(index), env=cfg.env,
                                env_options=cfg.env_options, worker_index=index,
-                               follow_policy=cfg.collector != "random")
+                               follow_policy=cfg.collector != "random", local_graphs=scores_local_graphs(cfg))
+
+
+def scores_local_graphs(cfg: RunConfig) -> bool:
+    """Whether the run scores local graphs: the method estimates them, the env knows them, and the
+    env scores them by default or ``--worker-local-graphs true`` asks (the workers then send them)."""
+    entry = env_entry(cfg.env)
+    wanted = cfg.worker.local_graphs or entry.local_scoring
+    return wanted and entry.has_local_truth and get_method(cfg.method).local_graph is not None
 
 
 def env_kwargs(cfg: RunConfig) -> dict[str, Any]:

@@ -4,6 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 from causal.graph_metrics import (
+    average_precision,
+    score_local_graphs,
     best_threshold, binary_scores, confusion, identifiable_entries, roc_auc, score_graph, scored_entries,
 )
 
@@ -128,3 +130,44 @@ def test_exact_best_threshold_resolves_weak_edges_a_coarse_grid_cannot() -> None
     assert threshold == 0.012 and best["f1"] == 1.0
     grid_threshold, grid = best_threshold(scores, truth, num=200)
     assert grid["f1"] < 1.0 and grid_threshold != threshold
+
+
+def _brute_average_precision(scores: np.ndarray, truth: np.ndarray) -> float:
+    """Sum over distinct thresholds (high to low) of precision x the recall it adds."""
+    total, previous_recall = 0.0, 0.0
+    for t in sorted(set(scores.tolist()), reverse=True):
+        predicted = scores >= t
+        precision = (predicted & truth).sum() / predicted.sum()
+        recall = (predicted & truth).sum() / truth.sum()
+        total += precision * (recall - previous_recall)
+        previous_recall = recall
+    return float(total)
+
+
+def test_average_precision_by_hand_and_against_its_definition() -> None:
+    one_row = np.array([[0.0, 0.9, 0.8, 0.7, 0.6]])  # entry 0 is the (unscored) self-edge
+    truth = np.array([[1, 1, 0, 1, 0]], dtype=bool)
+    assert average_precision(one_row, truth) == 0.5 * 1.0 + 0.5 * (2 / 3)
+    tie = np.array([[0.0, 0.5, 0.5]])
+    assert average_precision(tie, np.array([[1, 1, 0]], dtype=bool)) == 0.5  # a tie enters at once
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        scores = rng.integers(0, 6, (6, 7)).astype(float)  # many ties
+        truth = rng.random((6, 7)) < 0.3
+        mask = scored_entries(truth.shape)
+        if truth[mask].any():
+            assert abs(average_precision(scores, truth) - _brute_average_precision(scores[mask], truth[mask])) < 1e-12
+
+
+def test_local_graph_scores_pool_off_diagonal_entries_of_every_transition() -> None:
+    rng = np.random.default_rng(1)
+    truth = (rng.random((50, 4, 5)) < 0.2).astype(np.uint8)
+    truth[:, np.arange(4), np.arange(4)] = 1
+    perfect = score_local_graphs(truth.astype(float) * 2.0 - 1.0, truth, threshold=0.0)
+    assert perfect["roc_auc"] == perfect["pr_auc"] == perfect["best_f1"] == perfect["f1"] == 1.0
+    noise = score_local_graphs(rng.random(truth.shape), truth, threshold=0.5)
+    off = truth[:, ~np.eye(4, 5, dtype=bool)]
+    assert abs(noise["positive_rate"] - off.mean()) < 1e-12
+    assert 0.35 < noise["roc_auc"] < 0.65 and noise["pr_auc"] < 0.4
+    inverted = score_local_graphs(-(truth.astype(float)), truth, threshold=-0.5)
+    assert inverted["roc_auc"] == 0.0 and inverted["f1"] == 0.0

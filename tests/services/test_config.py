@@ -44,7 +44,7 @@ def test_bad_values_are_clear_errors(capsys) -> None:
     (["--target-metric", "nope"], {}, "invalid choice 'nope' (choose from 'accuracy'"),
     (["--collector", "dqn"], {}, "choose from 'random', 'ppo', 'sac'"),
     (["--intrinsic", "nope"], {}, "choose from 'none', 'preddiff'"),
-    (["--task", "nope"], {}, "choose from '', 'match'"),
+    (["--task", "nope"], {}, "choose from '', 'clean-car', 'clean-rag', 'diamond'"),
     (["--cdl-lr", "nan"], {}, "lr must be a positive finite number, got nan"),
     (["--cdl-batch-size", "0"], {}, "batch_size must be >= 1"),
     (["--learner-replay-capacity", "0"], {}, "replay_capacity must be >= 1"),

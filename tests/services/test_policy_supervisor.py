@@ -43,4 +43,4 @@ def test_ppo_on_manipulation_acts_over_skills_and_sac_over_motor_actions() -> No
                                  dict(intrinsic="preddiff"), dict(collector="sac", task="match")])
 def test_invalid_selections_are_refused(bad: dict) -> None:
     with pytest.raises(ValueError):
-        resolve(RunConfig(router_port=7447, **bad))
+        resolve(build_config(RunConfig, router_port=7447, **bad))
