@@ -44,7 +44,7 @@ def main() -> None:
     print(f"\n{'graph':12} {'seconds':>8} {'env steps':>10} {'updates':>8} {'F1@0.02':>8} {'best F1':>8} "
           f"{'paper':>6} {'acc':>6} {'AUC':>6}  stopped because")
     for r in rows:
-        name = Path(r["graph"]).stem
+        name = Path(r["env_options"]["graph"]).stem
         paper = f"{PAPER_F1[name]:.3f}" if name in PAPER_F1 else "-"
         print(f"{name:12} {r['wall_seconds']:8.0f} {r['env_steps']:10,} {r['updates']:8,} {r.get('f1', 0):8.3f} "
               f"{r.get('best_threshold_f1', 0):8.3f} {paper:>6} {r.get('accuracy', 0):6.3f} "

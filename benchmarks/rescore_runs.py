@@ -75,7 +75,8 @@ def rescore(run_dir: Path, window_s: float = 0.0, graph: str = "last") -> dict:
         summary = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: cannot read a run summary ({exc})") from None
-    scored = summary.get("final_graph") if graph == "final" else summary
+    live = summary.get("graph")  # the contract's block; before it, the scores sat at the top level
+    scored = summary.get("final_graph") if graph == "final" else (live if isinstance(live, dict) else summary)
     if scored is None:
         raise ValueError(f"{path}: no final graph (run `causeway final-graph --run-dir {run_dir}`)")
     if scored.get("cmi") is None or scored.get("true_graph") is None:

@@ -11,6 +11,7 @@ import numpy as np
 from envs.registry import EnvEntry, env_entry
 from proto.messages import EnvSpec, TransitionBatch, Weights
 from services.env_worker.config import EnvWorkerConfig
+from services.env_worker.episodes import EpisodeStats
 
 if TYPE_CHECKING:
     from causal.rl.policy_weights import Agent
@@ -128,6 +129,7 @@ class EnvWorkerCore:
         self.random_policy = default_policy(self.entry, self.env.action_space, seed)
         self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())
         self.observation, _ = self.env.reset(seed=seed)
+        self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
         self.episode, self.step_in_episode = 0, 0
         self.env_steps, self.seq = 0, 0
 
@@ -169,6 +171,7 @@ class EnvWorkerCore:
                 graphs[t] = info["local_graph"]
             self.step_in_episode += 1
             self.observation = obs
+            self.episodes.step(r, info, term or trunc)
             if term or trunc:
                 policy.reset()  # a policy over skills starts the next episode with a fresh decision
                 self.observation, _ = self.env.reset()

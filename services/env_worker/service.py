@@ -68,7 +68,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                 stat = f"options_{policy}_{option}"
                 chosen[stat] = chosen.get(stat, 0) + n
             shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": batch.policy_version,
-                        **chosen})
+                        **core.episodes.values(), **chosen})
             if cfg.max_steps and core.env_steps >= cfg.max_steps:
                 break
             _throttle(cfg.max_steps_per_second, core.env_steps, started)

@@ -124,9 +124,11 @@ def git_revision() -> str:
 
 
 def print_summary(content: dict) -> None:
-    keys = ("env", "method", "graph", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
+    keys = ("env", "method", "env_options", "seed", "env_steps", "updates", "wall_seconds", "stopped_because", "accuracy",
             "precision", "recall", "f1", "roc_auc", "best_threshold_f1")
     shown = {k: content.get(k) for k in keys}
+    if "task" in content:
+        shown["task"] = content["task"]
     if "local_graph" in content:
         local = content["local_graph"]
         shown["local_graph"] = {k: local.get(k) for k in ("evaluation", "num_transitions", "roc_auc", "pr_auc", "best_f1")}

@@ -43,6 +43,11 @@ class Progress:
         return sum(s.values.get(key, 0.0) + self.carried.get((svc, inst, key), 0.0)
                    for (svc, inst), s in self.stats.items() if svc == service)
 
+    def mean(self, service: str, key: str) -> float | None:
+        """The mean of ``key`` over the instances of ``service`` that report it (None if none does)."""
+        values = [s.values[key] for (svc, _), s in self.stats.items() if svc == service and key in s.values]
+        return sum(values) / len(values) if values else None
+
     def env_steps(self) -> int:
         return int(self.value("env-worker", "env_steps"))
 

@@ -26,12 +26,16 @@ WITH_SELF_SCORES = tuple(f"with_self_{k}" for k in SUMMARY_SCORES)
 
 
 def summary(report: GraphReport | None, base: dict[str, Any], history: list[dict[str, float]]) -> dict[str, Any]:
-    """summary.json content: the run's facts plus the last graph report's scores and matrices."""
+    """summary.json content: the run's facts plus the last graph report's scores and matrices, as the
+    ``graph`` block of the results contract (docs/scoring.md) and, as before the contract, at the top
+    level too (tools written against the older layout read them there)."""
     out = dict(base)
     if report is None:
         out["graph_report"] = None
         return out
-    out.update(graph_fields(report))
+    fields = graph_fields(report)
+    out["graph"] = {"evaluation": "last live report", **fields}
+    out.update(fields)
     out["scoring"] = ("off-diagonal entries of the d_S x (d_S+1) graph (self-edges are assumed, not scored); "
                       "identifiable_*: also without the columns of factors constant by construction; "
                       "with_self_*: every entry, self-edges included and kept (Table 3.1's scoring)")

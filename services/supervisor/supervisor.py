@@ -254,13 +254,17 @@ class Supervisor:
         cfg = self.cfg
         budget_at = self.stop_rules.budget_reached_at
         facts = {"run_id": cfg.run_id, "env": cfg.env, "method": cfg.method,
-                 "graph": cfg.env_options.graph if "graph" in env_entry(cfg.env).options else None,
-                 "num_objects": cfg.env_options.num_objects, "seed": cfg.seed, "workers": cfg.workers,
+                 "env_options": env_entry(cfg.env).kwargs(cfg.env_options), "seed": cfg.seed, "workers": cfg.workers,
                  "env_steps": self.progress.env_steps(), "updates": self.progress.updates(),
                  "wall_seconds": round(wall_seconds, 1), "stopped_because": self.stop_reason or "stopped",
                  "restarts": self.restarts(),
                  "catch_up_seconds": round(wall_seconds - budget_at, 1) if budget_at is not None else 0.0,
                  "git_revision": git_revision()}
+        task = {key: value for key in ("success_rate", "return_mean", "stages_mean")
+                if (value := self.progress.mean("env-worker", key)) is not None}
+        if task:
+            facts["task"] = {**task, "episodes": int(self.progress.value("env-worker", "episodes")),
+                             "evaluation": "the env-workers' last 100 episodes each (the collection policy)"}
         with self._lock:
             record = RunRecord(facts, self.last_report, list(self.history), failure=self.failure,
                                policy_timeline=list(self.policy_timeline), local_report=self.last_local,

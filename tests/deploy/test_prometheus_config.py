@@ -51,8 +51,12 @@ EVALUATOR_METRICS = {
     "causeway_graph_identifiable_f1_ratio", "causeway_graph_identifiable_best_threshold_f1_ratio",
     "causeway_graph_with_self_accuracy_ratio", "causeway_graph_with_self_f1_ratio",
     "causeway_graph_with_self_best_threshold_f1_ratio",
+    "causeway_local_graph_roc_auc_ratio", "causeway_local_graph_pr_auc_ratio", "causeway_local_graph_best_f1_ratio",
+    "causeway_local_graph_f1_ratio", "causeway_local_graph_positive_rate_ratio", "causeway_local_graph_reports_total",
+    "causeway_local_graph_heldout_transitions", "causeway_local_graph_eval_seconds",
 }
 HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds",
+              "causeway_local_graph_eval_seconds",
               "causeway_policy_lag_versions", "causeway_policy_update_seconds"}
 KNOWN_METRICS = (COMMON_METRICS | ENV_WORKER_METRICS | FOLLOWER_METRICS | LEARNER_METRICS | EVALUATOR_METRICS
                  | POLICY_LEARNER_METRICS | {"up"})

@@ -96,7 +96,7 @@ def test_local_stack_learns_survives_sigkill_and_reports(tmp_path: Path) -> None
         out, _ = stack.communicate(timeout=90)
     assert stack.returncode == 0, out
     summary = json.loads((run_dir / "summary.json").read_text())
-    for key in ("env", "graph", "seed", "env_steps", "updates", "wall_seconds", "accuracy", "precision", "recall",
+    for key in ("env", "env_options", "graph", "seed", "env_steps", "updates", "wall_seconds", "accuracy", "precision", "recall",
                 "f1", "roc_auc", "best_threshold_f1", "factor_names", "learned_graph", "true_graph", "abstraction"):
         assert key in summary, key
     assert summary["restarts"] >= 1 and summary["env_steps"] > 0

@@ -88,3 +88,19 @@ def test_household_tasks_reach_the_env() -> None:
         resolve(build_config(RunConfig, router_port=7447, env="cleaning-car", task="thaw-fish"))
     with pytest.raises(ValueError, match="room_size"):
         resolve(build_config(RunConfig, router_port=7447, env="thawing", room_size=3))
+
+
+def test_a_batch_with_local_graphs_of_another_env_is_refused_and_nothing_is_kept() -> None:
+    import dataclasses
+
+    from proto.codec import ProtocolError
+
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, env="thawing", batch_steps=64, local_graphs=True))
+    evaluator = GraphEvaluatorCore(GraphEvaluatorConfig(heldout_fraction=0.5), worker.spec)
+    batch = worker.collect()
+    wrong = dataclasses.replace(batch, local_graph=np.zeros((64, 3, 4), np.uint8))
+    with pytest.raises(ProtocolError, match="local graphs"):
+        evaluator.ingest(wrong)
+    assert evaluator.heldout.size == 0 and evaluator.local.ring.size == 0
+    evaluator.ingest(batch)
+    assert evaluator.local.ring.size == evaluator.heldout.size > 0
