@@ -34,7 +34,8 @@ class DynamicsTrainer(Protocol):
     """Transitions per update (the learner samples batches of this size from its replay)."""
 
     def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> dict[str, float]:
-        """One training step on a batch; returns its losses (``nll_*`` keys: nats per factor)."""
+        """One training step on a batch; returns its losses (``nll_*`` keys: nats per factor). A method
+        that ``learns_reward`` is called with the batch's rewards as a fourth argument."""
 
     def set_parents(self, adjacency: np.ndarray) -> None:
         """Graph feedback: the newest global graph (only called when the method has one)."""
@@ -108,6 +109,9 @@ class Method:
     rollout_step: RolloutStep | None = None
     resumable: tuple[str, ...] = ()
     """Config fields a resumed learner may change (left out of the checkpoint fingerprint)."""
+    learns_reward: bool = False
+    """The trainer's ``update`` also takes the batch's rewards (a causal reward model, chapter 4):
+    ``update(state, action, next_state, reward)``."""
 
     def config_json(self, layout: FactorLayout, cfg: Any) -> str:
         return model_config_json(self.name, layout, cfg)

@@ -19,30 +19,35 @@ def heldout_mask(worker_id: str, episode_ids: np.ndarray, fraction: float) -> np
 
 
 class ReplayBuffer:
-    """A ring buffer of (state, action, next_state) rows; the oldest rows are overwritten."""
+    """A ring buffer of (state, action, next_state, reward) rows; the oldest rows are overwritten.
+    The reward column is kept for methods whose models learn it (a causal reward model); rows added
+    without one hold 0."""
 
     def __init__(self, capacity: int, state_dim: int, action_dim: int, seed: int = 0) -> None:
         self.capacity = capacity
         self.state = np.zeros((capacity, state_dim), np.float32)
         self.action = np.zeros((capacity, action_dim), np.float32)
         self.next_state = np.zeros((capacity, state_dim), np.float32)
+        self.reward = np.zeros(capacity, np.float32)
         self.size, self.cursor, self.added = 0, 0, 0
         self.rng = np.random.default_rng(seed)
 
-    def add(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray) -> None:
-        n = len(state)
-        if n > self.capacity:
-            state, action, next_state = state[-self.capacity:], action[-self.capacity:], next_state[-self.capacity:]
-            n = self.capacity
+    def add(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray,
+            reward: np.ndarray | None = None) -> None:
+        n = min(len(state), self.capacity)
+        reward = np.zeros(len(state), np.float32) if reward is None else reward
         index = (self.cursor + np.arange(n)) % self.capacity
-        self.state[index], self.action[index], self.next_state[index] = state, action, next_state
+        self.state[index], self.action[index] = state[-n:], action[-n:]
+        self.next_state[index], self.reward[index] = next_state[-n:], reward[-n:]
         self.cursor = int((self.cursor + n) % self.capacity)
         self.size = min(self.capacity, self.size + n)
         self.added += n
 
-    def sample(self, batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def sample(self, batch: int, with_reward: bool = False) -> tuple[torch.Tensor, ...]:
+        """``batch`` uniform rows: (state, action, next_state), and the reward ``with_reward``."""
         index = self.rng.integers(0, self.size, batch)
-        return tuple(torch.from_numpy(a[index]) for a in (self.state, self.action, self.next_state))
+        columns = (self.state, self.action, self.next_state) + ((self.reward,) if with_reward else ())
+        return tuple(torch.from_numpy(a[index]) for a in columns)
 
     def all(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return tuple(torch.from_numpy(a[: self.size]) for a in (self.state, self.action, self.next_state))
@@ -51,17 +56,19 @@ class ReplayBuffer:
         return {"state": torch.from_numpy(self.state[: self.size].copy()),
                 "action": torch.from_numpy(self.action[: self.size].copy()),
                 "next_state": torch.from_numpy(self.next_state[: self.size].copy()),
+                "reward": torch.from_numpy(self.reward[: self.size].copy()),
                 "cursor": self.cursor, "added": self.added}
 
     def load_state_dict(self, saved: dict) -> None:
         """Restore saved rows. A full, wrapped ring saved with a smaller capacity is laid out oldest
         first, so that the new rows are appended after its newest instead of overwriting them."""
         rows, cursor = int(saved["state"].shape[0]), int(saved["cursor"])
-        arrays = [saved[k].numpy() for k in ("state", "action", "next_state")]
+        reward = saved["reward"].numpy() if "reward" in saved else np.zeros(rows, np.float32)  # older checkpoints
+        arrays = [saved[k].numpy() for k in ("state", "action", "next_state")] + [reward]
         if int(saved["added"]) > rows and rows < self.capacity:
             arrays, cursor = [np.roll(a, -cursor, axis=0) for a in arrays], rows
         n = min(rows, self.capacity)
-        for mine, theirs in zip((self.state, self.action, self.next_state), arrays):
+        for mine, theirs in zip((self.state, self.action, self.next_state, self.reward), arrays):
             mine[:n] = theirs[:n]
         self.size, self.cursor, self.added = n, cursor % self.capacity, int(saved["added"])
 

@@ -37,7 +37,7 @@ class DynamicsLearnerCore:
         check_fits(self.spec, batch)
         self.env_steps += len(batch)
         keep = ~heldout_mask(batch.worker_id, batch.episode_id, self.cfg.heldout_fraction)
-        self.replay.add(batch.state[keep], batch.action[keep], batch.next_state[keep])
+        self.replay.add(batch.state[keep], batch.action[keep], batch.next_state[keep], batch.reward[keep])
         return int(keep.sum())
 
     @property
@@ -53,7 +53,7 @@ class DynamicsLearnerCore:
         return self.ready and (ratio <= 0 or self.trainer.updates < ratio * self.env_steps)
 
     def train_step(self) -> dict[str, float]:
-        stats = self.trainer.update(*self.replay.sample(self.trainer.batch_size))
+        stats = self.trainer.update(*self.replay.sample(self.trainer.batch_size, self.method.learns_reward))
         self.last_stats.update(stats)
         return stats
 

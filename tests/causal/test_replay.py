@@ -41,3 +41,23 @@ def test_a_wrapped_ring_restored_into_a_larger_one_keeps_its_newest_rows() -> No
     more = np.array([[9], [10], [11], [12]], np.float32)
     large.add(more, more, more)  # fills the new room, then overwrites the oldest (4), not the newest
     assert large.size == 8 and sorted(large.state[:, 0].tolist()) == list(range(5, 13))
+
+
+def test_rewards_are_kept_sampled_on_request_and_checkpointed() -> None:
+    import numpy as np
+
+    from causal.replay import ReplayBuffer
+
+    replay = ReplayBuffer(4, 2, 1, seed=0)
+    states = np.arange(12, dtype=np.float32).reshape(6, 2)
+    replay.add(states, states[:, :1], states + 1, reward=np.arange(6, dtype=np.float32))
+    assert sorted(replay.reward.tolist()) == [2.0, 3.0, 4.0, 5.0]  # the newest four rows
+    s, a, n, r = replay.sample(16, with_reward=True)
+    assert len(replay.sample(16)) == 3 and (r.numpy() == s.numpy()[:, 0] / 2).all()
+    saved = replay.state_dict()
+    older = {k: v for k, v in saved.items() if k != "reward"}  # a checkpoint from before rewards were kept
+    again = ReplayBuffer(4, 2, 1)
+    again.load_state_dict(older)
+    assert (again.reward == 0).all() and (again.state == replay.state).all()
+    again.load_state_dict(saved)
+    assert (again.reward == replay.reward).all()
