@@ -79,6 +79,18 @@ class LocalGraphEstimator(Protocol):
     def threshold(self, model: nn.Module) -> float: ...
 
 
+class RewardGraphEstimator(Protocol):
+    """Which factors (and the action) the reward depends on (chapter 4's causal reward model)."""
+
+    name: str
+
+    def scores(self, model: nn.Module, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+               reward: torch.Tensor) -> np.ndarray:
+        """``[d_S + 1]`` float scores: one per state factor, the action last."""
+
+    def threshold(self, model: nn.Module) -> float: ...
+
+
 TaskAbstraction = Callable[[np.ndarray], Abstraction]
 """A global graph (with self-edges) -> which factors a policy sees (``Abstraction.kept``)."""
 
@@ -103,12 +115,16 @@ class Method:
     """The parsed :meth:`DynamicsTrainer.config_json` -> an untrained model of the same shape."""
     global_graph: GlobalGraphEstimator | None = None
     local_graph: LocalGraphEstimator | None = None
+    reward_graph: RewardGraphEstimator | None = None
     abstraction: TaskAbstraction = cdl_abstraction
     intrinsic: tuple[str, ...] = ()
     """Intrinsic rewards (``causal.intrinsic.REWARDS``) that read this method's model."""
     rollout_step: RolloutStep | None = None
     resumable: tuple[str, ...] = ()
     """Config fields a resumed learner may change (left out of the checkpoint fingerprint)."""
+    prioritised: bool = False
+    """The learner samples its replay in proportion to priorities the trainer reports for the rows it
+    was given (prediction-error prioritisation, chapter 5), instead of uniformly."""
     learns_reward: bool = False
     """The trainer's ``update`` also takes the batch's rewards (a causal reward model, chapter 4):
     ``update(state, action, next_state, reward)``."""

@@ -58,7 +58,7 @@ class GraphEvaluatorCore:
         """Keep the held-out episodes of ``batch`` (ProtocolError if it does not fit the EnvSpec)."""
         check_fits(self.spec, batch)
         keep = heldout_mask(batch.worker_id, batch.episode_id, self.cfg.heldout_fraction)
-        self.heldout.add(batch.state[keep], batch.action[keep], batch.next_state[keep])
+        self.heldout.add(batch.state[keep], batch.action[keep], batch.next_state[keep], batch.reward[keep])
         if self.local is not None:
             self.local.add(batch, keep)
         return int(keep.sum())
