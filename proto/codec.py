@@ -36,6 +36,9 @@ MAX_MESSAGE_BYTES: Final = 64 * 2**20
 MAX_ARRAY_ELEMENTS: Final = 16 * 2**20
 MAX_STR_BYTES: Final = 2**20
 MAX_CONTAINER_LEN: Final = 2**16
+MAX_CONTAINERS: Final = 2**17 + 256
+"""Maps and lists in one message, counted while unpacking: a payload of nested empty containers is
+refused before it is built (a 64 MiB one would otherwise cost gigabytes of Python objects)."""
 MAX_STEPS: Final = 65536
 MAX_NDIM: Final = 8
 MAX_LOCAL_EXAMPLES: Final = 64
@@ -137,18 +140,41 @@ def decode(data: bytes, expected: type | tuple[type, ...] | None = None) -> Any:
 def _unpack(data: bytes) -> dict[Any, Any]:
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise TypeError(f"decode() takes bytes, not {type(data).__name__}")
+    data = bytes(data)
     _require(len(data) <= MAX_MESSAGE_BYTES, "too_large", f"payload of {len(data)} bytes")
+    first = data[0] if len(data) else -1
+    _require(0x80 <= first <= 0x8F or first in (0xDE, 0xDF), "malformed", "top level is not a map")
+    budget = _ContainerBudget(MAX_CONTAINERS)
     try:
         raw = msgpack.unpackb(
             data, raw=False, strict_map_key=True, max_str_len=MAX_STR_BYTES,
             max_bin_len=MAX_MESSAGE_BYTES, max_array_len=MAX_CONTAINER_LEN,
-            max_map_len=MAX_CONTAINER_LEN,
+            max_map_len=MAX_CONTAINER_LEN, list_hook=budget, object_hook=budget,
         )
+    except _TooManyContainers:
+        raise ProtocolError("too_large", f"more than {MAX_CONTAINERS} maps and lists") from None
     except Exception as exc:  # untrusted bytes: whatever the parser raises, the input is bad
         reason = "too_large" if "exceeds max_" in str(exc) else "malformed"
         raise ProtocolError(reason, f"msgpack: {type(exc).__name__} {exc}") from None
     _require(isinstance(raw, dict), "malformed", f"top level is {type(raw).__name__}, not a map")
     return raw
+
+
+class _TooManyContainers(Exception):
+    pass
+
+
+class _ContainerBudget:
+    """msgpack hook: counts every map and list as it is built, and stops the parse past ``limit``."""
+
+    def __init__(self, limit: int) -> None:
+        self.left = limit
+
+    def __call__(self, container: Any) -> Any:
+        self.left -= 1
+        if self.left < 0:
+            raise _TooManyContainers
+        return container
 
 
 def _message_class(raw: dict[Any, Any]) -> type:
@@ -254,6 +280,7 @@ def _shape(value: Any, path: str) -> tuple[int, ...]:
     ok = isinstance(value, list) and len(value) <= MAX_NDIM
     ok = ok and all(type(n) is int and n >= 0 for n in value)
     _require(ok, "bad_array", f"{path}: shape {_short(value)}")
+    _require(max(value, default=0) <= MAX_ARRAY_ELEMENTS, "too_large", f"{path}: shape {_short(value)}")
     return tuple(value)
 
 
@@ -270,13 +297,14 @@ def _array_from_bytes(dtype: str, shape: tuple[int, ...], data: bytes, path: str
 
 _F32_1D, _F32_2D = _array("float32", ndim=1), _array("float32", ndim=2)
 _GRAPH = _array("uint8", ndim=2)
+_PARENTS = _array("uint8", ndim=1)
 _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
     EnvSpec: {
         "env_id": _str, "factor_names": _tuple(_str), "factor_kinds": _tuple(_str),
         "factor_sizes": _tuple(_int), "factor_objects": _tuple(_str),
         "factor_locs": _tuple(_float), "factor_scales": _tuple(_float),
         "action_kind": _str, "action_size": _int, "episode_length": _int,
-        "global_graph": _optional(_GRAPH), "config_json": _str,
+        "global_graph": _optional(_GRAPH), "config_json": _str, "reward_parents": _optional(_PARENTS),
     },
     TransitionBatch: {
         "worker_id": _str, "seq": _int, "policy_version": _int,
@@ -299,6 +327,8 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "controllable": _tuple(_int), "action_relevant": _tuple(_int),
         "action_irrelevant": _tuple(_int), "metrics": _str_map(_float),
         "true_graph": _optional(_GRAPH), "num_heldout": _int, "timestamp": _float,
+        "reward_scores": _optional(_F32_1D), "reward_parents": _optional(_PARENTS), "reward_threshold": _float,
+        "true_reward_parents": _optional(_PARENTS),
     },
     LocalGraphReport: {
         "kind": _str, "estimator": _str, "weights_version": _int, "env_steps": _int, "updates": _int,
@@ -346,6 +376,8 @@ def _check_env_spec(m: EnvSpec) -> None:
     _require(m.episode_length >= 1, "bad_field", f"EnvSpec.episode_length: {m.episode_length}")
     if m.global_graph is not None:
         _check_graph(m.global_graph, (n, n + 1), "EnvSpec.global_graph")
+    if m.reward_parents is not None:
+        _check_graph(m.reward_parents, (n + 1,), "EnvSpec.reward_parents")
 
 
 def _check_transitions(m: TransitionBatch) -> None:
@@ -398,6 +430,19 @@ def _check_graph_report(m: GraphReport) -> None:
     _require(ok, "bad_field", f"GraphReport: factor index outside [0, {d})")
     _require(len(set(classes)) == len(classes), "inconsistent", "GraphReport: classes overlap")
     _check_counters(m, "weights_version", "env_steps", "updates", "num_heldout")
+    _check_reward_graph(m, d)
+
+
+def _check_reward_graph(m: GraphReport, d: int) -> None:
+    """Reward scores and parents come together, one entry per factor and the action."""
+    ok = (m.reward_scores is None) == (m.reward_parents is None)
+    _require(ok, "inconsistent", "GraphReport: reward_scores and reward_parents come together")
+    if m.reward_scores is not None:
+        shape = m.reward_scores.shape
+        _require(shape == (d + 1,), "inconsistent", f"GraphReport.reward_scores: {shape}, want {(d + 1,)}")
+        _check_graph(m.reward_parents, (d + 1,), "GraphReport.reward_parents")
+    if m.true_reward_parents is not None:
+        _check_graph(m.true_reward_parents, (d + 1,), "GraphReport.true_reward_parents")
 
 
 def _check_local_report(m: LocalGraphReport) -> None:

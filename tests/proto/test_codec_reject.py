@@ -135,6 +135,7 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("NaN intrinsic", ScoredBatch, put("intrinsic_reward", nan_at(F32_4))),
         ("NaN tensor", Weights, put("tensors.b", nan_at(np.zeros(2)))),
         ("inf cmi", GraphReport, put("cmi", nan_at(REPORT.cmi, -np.inf))),
+        ("NaN reward score", GraphReport, put("reward_scores", nan_at(REPORT.reward_scores))),
         ("NaN threshold", GraphReport, put("threshold", float("nan"))),
         ("inf metric", GraphReport, put("metrics.f1", float("inf"))),
         ("NaN local score", LocalGraphReport, put("scores", nan_at(LOCAL.scores))),
@@ -165,6 +166,9 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("option int64", TransitionBatch, put("option", wire(T.option.astype(np.int64)))),
         ("adjacency 2", GraphReport, put("adjacency", wire(2 * REPORT.adjacency))),
         ("true graph 2", GraphReport, put("true_graph", wire(2 * REPORT.adjacency))),
+        ("reward parents 2", GraphReport, put("reward_parents", wire(2 * REPORT.reward_parents))),
+        ("reward parents 2-D", GraphReport, put("reward_parents", wire(REPORT.reward_parents[None]))),
+        ("spec reward parents 2", EnvSpec, put("reward_parents", wire(2 * SPEC.reward_parents))),
     ],
     "too_large": [
         ("declared shape oversize", TransitionBatch, put("state.shape", [2**25, 1])),
@@ -193,6 +197,12 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("true graph shape", GraphReport, put("true_graph", wire(np.zeros((2, 3), "u1")))),
         ("classes overlap", GraphReport, put("action_relevant", [0, 1])),
         ("class duplicates", GraphReport, put("controllable", [0, 0])),
+        ("reward parents without scores", GraphReport, put("reward_scores", None)),
+        ("reward scores without parents", GraphReport, put("reward_parents", None)),
+        ("reward scores length", GraphReport, put("reward_scores", wire(F32_5))),
+        ("reward parents length", GraphReport, put("reward_parents", wire(np.zeros(3, "u1")))),
+        ("true reward parents length", GraphReport, put("true_reward_parents", wire(np.zeros(5, "u1")))),
+        ("spec reward parents length", EnvSpec, put("reward_parents", wire(np.zeros(3, "u1")))),
     ],
 }
 
@@ -267,3 +277,25 @@ def test_proto_never_uses_pickle(path: Path) -> None:
     assert not imported & PICKLERS
     assert "allow_pickle" not in source and "np.load" not in source
     assert not PICKLERS & set(vars(codec))
+
+
+def test_a_payload_of_nested_empty_containers_is_refused_while_unpacking() -> None:
+    import tracemalloc
+
+    # {"type": [[{}, {}, ...], ...]}: 16 MiB of empty maps, within the size cap
+    lists = (b"\xdc\xff\xff" + b"\x80" * 0xFFFF) * 256
+    bomb = b"\x81\xa4type" + b"\xdc\x01\x00" + lists
+    tracemalloc.start()
+    try:
+        assert reason_of(bomb) == "too_large"
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 * 2**20, f"{peak / 2**20:.0f} MiB to refuse it"
+    assert reason_of(msgpack.packb([1, 2, 3])) == "malformed"  # not a map: refused before parsing
+
+
+def test_an_empty_array_with_an_impossible_dimension_is_a_protocol_error() -> None:
+    raw = raw_of(env_spec())
+    raw["global_graph"] = {"dtype": "uint8", "shape": [0, 2**63 - 1], "data": b""}
+    assert reason_of(msgpack.packb(raw)) == "too_large"
