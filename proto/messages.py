@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -45,6 +45,9 @@ class EnvSpec:
     """uint8 ``d_S x (d_S + 1)`` ground truth, or None when unknown."""
     config_json: str = "{}"
     """The environment's own configuration (graph, objects, seed), for reproducibility."""
+    reward_parents: np.ndarray | None = None
+    """uint8 ``[d_S + 1]``: which factors at t (and the action, last) the task's reward depends on,
+    when known (schema version 4; chapter 4's causal reward model is scored against it)."""
 
     @property
     def num_factors(self) -> int:
@@ -141,6 +144,14 @@ class GraphReport:
     true_graph: np.ndarray | None = None
     num_heldout: int = 0
     timestamp: float = 0.0
+    reward_scores: np.ndarray | None = None
+    """float32 [d_S + 1]: a causal reward model's edge scores (CBM: reward CMI, nats), one per factor
+    at t and the action last; only from a method with a reward graph (schema version 4)"""
+    reward_parents: np.ndarray | None = None
+    """uint8 [d_S + 1]: ``reward_scores >= reward_threshold``, the reward's learned parents"""
+    reward_threshold: float = 0.0
+    true_reward_parents: np.ndarray | None = None
+    """uint8 [d_S + 1]: the env's true reward parents (``EnvSpec.reward_parents``), when known"""
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ def env_spec() -> EnvSpec:
         factor_locs=(0.0, 0.5, 0.0), factor_scales=(1.0, 2.0, 1.0),
         action_kind="categorical", action_size=4, episode_length=100,
         global_graph=np.eye(3, 4, dtype=np.uint8), config_json='{"seed": 0}',
+        reward_parents=np.array([1, 0, 0, 1], np.uint8),
     )
 
 
@@ -72,6 +73,8 @@ def graph_report() -> GraphReport:
         controllable=(0,), action_relevant=(1,), action_irrelevant=(2,),
         metrics={"f1": 1.0, "accuracy": 0.5}, true_graph=np.eye(3, 4, dtype=np.uint8),
         num_heldout=256, timestamp=1.7e9,
+        reward_scores=np.array([0.5, 0.001, 0.0, 0.2], np.float32), reward_parents=np.array([1, 0, 0, 1], np.uint8),
+        reward_threshold=0.01, true_reward_parents=np.array([1, 0, 1, 1], np.uint8),
     )
 
 

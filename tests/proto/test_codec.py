@@ -63,6 +63,7 @@ def env_specs(draw: Any) -> EnvSpec:
         episode_length=draw(st.integers(1, 10**6)),
         global_graph=draw(st.none() | graphs(n, n + 1)),
         config_json=json.dumps(draw(st.dictionaries(texts, st.integers()))),
+        reward_parents=draw(st.none() | graphs(n + 1)),
     )
 
 
@@ -113,8 +114,17 @@ def graph_reports(draw: Any) -> GraphReport:
         threshold=draw(finite), controllable=next(classes), action_relevant=next(classes),
         action_irrelevant=next(classes), metrics=draw(st.dictionaries(texts, finite, max_size=7)),
         true_graph=draw(st.none() | graphs(d, d + 1)),
-        num_heldout=draw(counters), timestamp=draw(finite),
+        num_heldout=draw(counters), timestamp=draw(finite), **draw(reward_graphs(d)),
     )
+
+
+@st.composite
+def reward_graphs(draw: Any, d: int) -> dict[str, Any]:
+    """A report's reward graph fields: none, or scores with their parents (and maybe the truth)."""
+    if not draw(st.booleans()):
+        return {}
+    return {"reward_scores": draw(finite_arrays(np.float32, d + 1)), "reward_parents": draw(graphs(d + 1)),
+            "reward_threshold": draw(finite), "true_reward_parents": draw(st.none() | graphs(d + 1))}
 
 
 @st.composite
