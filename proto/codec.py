@@ -36,6 +36,9 @@ MAX_MESSAGE_BYTES: Final = 64 * 2**20
 MAX_ARRAY_ELEMENTS: Final = 16 * 2**20
 MAX_STR_BYTES: Final = 2**20
 MAX_CONTAINER_LEN: Final = 2**16
+MAX_CONTAINERS: Final = 2**17 + 256
+"""Maps and lists in one message, counted while unpacking: a payload of nested empty containers is
+refused before it is built (a 64 MiB one would otherwise cost gigabytes of Python objects)."""
 MAX_STEPS: Final = 65536
 MAX_NDIM: Final = 8
 MAX_LOCAL_EXAMPLES: Final = 64
@@ -137,18 +140,41 @@ def decode(data: bytes, expected: type | tuple[type, ...] | None = None) -> Any:
 def _unpack(data: bytes) -> dict[Any, Any]:
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise TypeError(f"decode() takes bytes, not {type(data).__name__}")
+    data = bytes(data)
     _require(len(data) <= MAX_MESSAGE_BYTES, "too_large", f"payload of {len(data)} bytes")
+    first = data[0] if len(data) else -1
+    _require(0x80 <= first <= 0x8F or first in (0xDE, 0xDF), "malformed", "top level is not a map")
+    budget = _ContainerBudget(MAX_CONTAINERS)
     try:
         raw = msgpack.unpackb(
             data, raw=False, strict_map_key=True, max_str_len=MAX_STR_BYTES,
             max_bin_len=MAX_MESSAGE_BYTES, max_array_len=MAX_CONTAINER_LEN,
-            max_map_len=MAX_CONTAINER_LEN,
+            max_map_len=MAX_CONTAINER_LEN, list_hook=budget, object_hook=budget,
         )
+    except _TooManyContainers:
+        raise ProtocolError("too_large", f"more than {MAX_CONTAINERS} maps and lists") from None
     except Exception as exc:  # untrusted bytes: whatever the parser raises, the input is bad
         reason = "too_large" if "exceeds max_" in str(exc) else "malformed"
         raise ProtocolError(reason, f"msgpack: {type(exc).__name__} {exc}") from None
     _require(isinstance(raw, dict), "malformed", f"top level is {type(raw).__name__}, not a map")
     return raw
+
+
+class _TooManyContainers(Exception):
+    pass
+
+
+class _ContainerBudget:
+    """msgpack hook: counts every map and list as it is built, and stops the parse past ``limit``."""
+
+    def __init__(self, limit: int) -> None:
+        self.left = limit
+
+    def __call__(self, container: Any) -> Any:
+        self.left -= 1
+        if self.left < 0:
+            raise _TooManyContainers
+        return container
 
 
 def _message_class(raw: dict[Any, Any]) -> type:
@@ -254,6 +280,7 @@ def _shape(value: Any, path: str) -> tuple[int, ...]:
     ok = isinstance(value, list) and len(value) <= MAX_NDIM
     ok = ok and all(type(n) is int and n >= 0 for n in value)
     _require(ok, "bad_array", f"{path}: shape {_short(value)}")
+    _require(max(value, default=0) <= MAX_ARRAY_ELEMENTS, "too_large", f"{path}: shape {_short(value)}")
     return tuple(value)
 
 
