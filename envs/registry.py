@@ -17,6 +17,7 @@ from typing import Any, Callable, Mapping
 import gymnasium as gym
 
 from envs import manipulation_layout
+from envs.distractors import parse_distractors
 from proto.settings import doc
 
 TRUTH_KINDS = ("global", "local", "global+local", "none")
@@ -42,10 +43,13 @@ class EnvOptions:
     cpt_seed: int = doc(0, "Chemical: seed of the fixed conditional probability tables (same for all workers)")
     episode_length: int = doc(0, "steps per episode (0: the environment's default)")
     room_size: int = doc(0, "household tasks and 2D Minecraft: side of the room in cells (0: the env's default)")
+    distractors: str = doc("20,20", "chapter 4's distractor factors, 'controllable,uncontrollable': random "
+                                    "projections of the action and U(-1, 1) noise (chemical-distractors)")
 
     def __post_init__(self) -> None:
         if self.episode_length < 0 or self.room_size < 0:
             raise ValueError("episode_length and room_size must be >= 0 (0: the environment's default)")
+        parse_distractors(self.distractors)
 
 
 DEFAULTED = ("task", "episode_length", "room_size")
@@ -145,6 +149,11 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
     EnvEntry("chemical-match", "causeway/ChemicalMatch-v0", "envs.chemical_match:ChemicalMatchEnv",
              "Chemical with the Match task (ch. 3.3.5): reach the goal colours",
              options=_CHEMICAL, truth="global+local", tasks={"match": "chemical-match"}, evaluation="chemical",
+             check=_check_chemical),
+    EnvEntry("chemical-distractors", "causeway/ChemicalDistractors-v0",
+             "envs.chemical_distractors:ChemicalDistractorsEnv",
+             "Chemical Match with chapter 4's controllable and uncontrollable distractors (CBM)",
+             options=_CHEMICAL + ("distractors",), truth="global+local", tasks={"match": "chemical-distractors"},
              check=_check_chemical),
     EnvEntry("manipulation", "causeway/Manipulation-v0", "envs.manipulation:ManipulationEnv",
              "robosuite manipulation scene (ch. 3.3.1): UR5e, movable/fixed/random-walk cubes, markers",

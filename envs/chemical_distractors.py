@@ -1,0 +1,116 @@
+"""Chemical Match with chapter 4's distractors: the cheap environment for CBM's tests and quick runs.
+
+Chemical Match (colours, positions, goal colours; reward = fraction of objects at their goal colour
+after the step) with ``controllable`` distractors (random projections of the one-hot action) and
+``uncontrollable`` ones (U(-1, 1) every step) appended to the observation (:mod:`envs.distractors`).
+Its truths: the Match graph with the distractors' rows and columns (:meth:`Distractors.extend_graph`),
+and the reward's parents at t: the parents of every colour and goal colour at t+1
+(:func:`envs.task_truth.parents_through_step`): the colours, the goal colours and the action.
+So the true minimal task abstraction (Theorem 4.1) keeps the colours and the goals, and drops the
+positions and all distractors; CDL's task-independent abstraction keeps the colours and the
+controllable distractors (descendants of the action) and drops the goals.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from envs.chemical_match import ChemicalMatchEnv
+from envs.distractors import Distractors, parse_distractors
+from envs.task_truth import parents_through_step
+from proto.messages import EnvSpec
+
+
+class ChemicalDistractorsEnv(ChemicalMatchEnv):
+    """Observation ``[4N + C + U]``: Chemical Match's ``[4N]``, then ``cd.0 .. cd.{C-1}`` and
+    ``ud.0 .. ud.{U-1}``. ``distractors`` is ``"C,U"`` (default 20 of each); ``distractor_seed``
+    fixes the projection. Every :class:`ChemicalMatchEnv` option passes through."""
+
+    def __init__(self, *, distractors: str = "20,20", distractor_seed: int = 0, **kwargs: Any) -> None:
+        self.num_controllable, self.num_uncontrollable = parse_distractors(distractors)
+        self.distractor_seed = distractor_seed
+        super().__init__(**kwargs)
+        self.distractors = Distractors(self.num_controllable, self.num_uncontrollable, "categorical",
+                                       int(self.action_space.n), distractor_seed)
+        self._match_width = 4 * self.num_objects
+        self._global_graph = self.distractors.extend_graph(self._global_graph)
+        self._global_graph.flags.writeable = False
+        self._local_graphs = tuple(self.distractors.extend_graph(g) for g in self._local_graphs)
+        self._values = np.zeros(self.distractors.count)
+
+    @property
+    def factor_names(self) -> tuple[str, ...]:
+        """Chemical Match's factors, then ``cd.k`` and ``ud.k``."""
+        extra = tuple(f"cd.{k}" for k in range(self.num_controllable)) + \
+            tuple(f"ud.{k}" for k in range(self.num_uncontrollable))
+        return super().factor_names + extra
+
+    @property
+    def reward_parents(self) -> np.ndarray:
+        """uint8 ``[d + 1]``: the true parents at t of the Match reward (colours, goals, the action)."""
+        n = self.num_objects
+        return parents_through_step(self._global_graph, [*range(0, 3 * n, 3), *range(3 * n, 4 * n)])
+
+    def reset(self, *, seed: int | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Chemical Match's reset, controllable distractors at 0, uncontrollable ones drawn."""
+        _, info = super().reset(seed=seed, options=options)
+        self._values = self.distractors.reset(self.np_random)
+        return self._observation(), info
+
+    def step(self, action: int | np.integer) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """The distractors' new values, then Chemical Match's step (its reward ignores them)."""
+        self._decode(action)
+        self._values = self.distractors.step(int(action), self.np_random)
+        return super().step(action)
+
+    def match_fraction(self, obs: np.ndarray) -> np.floating | np.ndarray:
+        """Chemical Match's reward on the first ``4N`` columns of ``obs``."""
+        return super().match_fraction(np.asarray(obs)[..., : self._match_width])
+
+    def sample_next_states(self, states: np.ndarray, action: int) -> np.ndarray:
+        """Chemical Match's batched simulator, with the distractors' new values appended."""
+        states = np.asarray(states)
+        nxt = super().sample_next_states(states[:, : self._match_width], action)
+        values = np.stack([self.distractors.step(action, self.np_random) for _ in range(len(states))])
+        return np.concatenate([nxt, values.astype(np.float32)], axis=1)
+
+    def set_state(self, obs: np.ndarray) -> None:
+        """Put the environment (goals and distractors included) in the state of observation ``obs``."""
+        obs = np.asarray(obs, dtype=np.float64)
+        if obs.shape != (self._match_width + self.distractors.count,):
+            raise ValueError(f"observations have shape ({self._match_width + self.distractors.count},), "
+                             f"got {obs.shape}")
+        super().set_state(obs[: self._match_width])
+        self._values = obs[self._match_width :].copy()
+
+    def env_spec(self) -> EnvSpec:
+        """Chemical Match's spec with the distractors (continuous, scale 1) and the true reward parents."""
+        spec = super().env_spec()
+        m = self.distractors.count
+        return dataclasses.replace(
+            spec, env_id="chemical-distractors", factor_names=self.factor_names,
+            factor_kinds=spec.factor_kinds + ("continuous",) * m, factor_sizes=spec.factor_sizes + (1,) * m,
+            factor_objects=spec.factor_objects + self.distractors.objects,
+            factor_locs=spec.factor_locs + (0.0,) * m, factor_scales=spec.factor_scales + (1.0,) * m,
+            global_graph=self._global_graph.copy(), reward_parents=self.reward_parents,
+            config_json=json.dumps(self.config()),
+        )
+
+    def config(self) -> dict[str, Any]:
+        """Chemical Match's configuration plus the distractor counts and seed."""
+        return {**super().config(), "distractors": f"{self.num_controllable},{self.num_uncontrollable}",
+                "distractor_seed": self.distractor_seed}
+
+    def _make_observation_space(self) -> gym.spaces.Box:
+        match = super()._make_observation_space()
+        m = self.num_controllable + self.num_uncontrollable
+        return gym.spaces.Box(np.concatenate([match.low, -np.ones(m, np.float32)]),
+                              np.concatenate([match.high, np.ones(m, np.float32)]), dtype=np.float32)
+
+    def _observation(self) -> np.ndarray:
+        return np.concatenate([super()._observation(), self._values.astype(np.float32)])
