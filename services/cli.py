@@ -34,6 +34,7 @@ def _run(argv: list[str]) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:
         supervisor = Supervisor(cfg)
+        supervisor.preflight()
     except ValueError as exc:
         print(f"causeway run: error: {exc}", file=sys.stderr)
         return USAGE_EXIT

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import socket
 import zlib
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -106,6 +108,25 @@ class PolicyActor:
         return np.atleast_1d(np.asarray(self.agent.act(observation), dtype=np.float32))
 
 
+GENERATION_SEED_STRIDE = 1_000_003
+"""Seed offset per restart of a worker (a prime far above any worker index)."""
+GENERATION_EPISODES = 10**9
+"""Episode ids of restart k start at k x this (ids stay unique per worker id across restarts)."""
+
+
+def next_generation(path: Path) -> int:
+    """The number of earlier starts recorded at ``path`` (a small JSON file), recording this one."""
+    try:
+        starts = int(json.loads(path.read_text())["starts"])
+    except (OSError, ValueError, KeyError, TypeError):
+        starts = 0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"starts": starts + 1}))
+    tmp.replace(path)
+    return starts
+
+
 def resolve_worker_index(cfg: EnvWorkerConfig) -> EnvWorkerConfig:
     """Replicas started from one configuration (``docker compose --scale``) take distinct indices
     from their hostnames, so their seeds, worker ids and instance ids differ."""
@@ -118,19 +139,21 @@ def resolve_worker_index(cfg: EnvWorkerConfig) -> EnvWorkerConfig:
 class EnvWorkerCore:
     """Steps one environment and packs consecutive steps into TransitionBatches."""
 
-    def __init__(self, cfg: EnvWorkerConfig) -> None:
+    def __init__(self, cfg: EnvWorkerConfig, generation: int = 0) -> None:
+        """``generation``: how many times this worker started before in the run (a restart); each
+        generation draws new seeds and new episode ids, so a restarted worker repeats no data."""
         cfg = resolve_worker_index(cfg)
         self.cfg = cfg
         self.worker_id = f"w{cfg.worker_index}"
         self.entry = env_entry(cfg.env)
         self.env = self.entry.make(**self.entry.kwargs(cfg.env_options))
         self.spec: EnvSpec = self.env.unwrapped.env_spec()
-        seed = cfg.seed + cfg.worker_index
+        seed = cfg.seed + cfg.worker_index + GENERATION_SEED_STRIDE * generation
         self.random_policy = default_policy(self.entry, self.env.action_space, seed)
         self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())
         self.observation, _ = self.env.reset(seed=seed)
         self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
-        self.episode, self.step_in_episode = 0, 0
+        self.episode, self.step_in_episode = GENERATION_EPISODES * generation, 0
         self.env_steps, self.seq = 0, 0
 
     @property

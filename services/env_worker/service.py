@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -12,7 +13,7 @@ from proto.codec import ProtocolError, decode, encode
 from proto.messages import Weights
 from services.bus.base import Transport
 from services.env_worker.config import EnvWorkerConfig
-from services.env_worker.core import EnvWorkerCore
+from services.env_worker.core import EnvWorkerCore, next_generation, resolve_worker_index
 from services.runtime.shell import Inbox, ServiceShell, parse_service_config, setup_logging
 
 SERVICE = "env-worker"
@@ -21,7 +22,9 @@ log = logging.getLogger(SERVICE)
 
 def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     """Publish the EnvSpec (also to late queries), then transition batches until stopped."""
-    core = EnvWorkerCore(cfg)
+    cfg = resolve_worker_index(cfg)
+    generation = next_generation(Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.json")
+    core = EnvWorkerCore(cfg, generation)
     cfg = core.cfg
     if cfg.follow_policy:
         import torch

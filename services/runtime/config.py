@@ -64,6 +64,8 @@ class ServiceConfig(RunSettings):
     run_id: str = doc("default", "run id: the <run> segment of every topic")
     zenoh_connect: str = doc("tcp/127.0.0.1:7447", "Zenoh router endpoint to connect to")
     metrics_port: int = doc(0, "port of the Prometheus /metrics endpoint (0: none)")
+    metrics_host: str = doc("0.0.0.0", "address the /metrics endpoint binds to (the local stack: 127.0.0.1; a "
+                                       "container: every interface, for Prometheus on the compose network)")
     run_dir: str = doc("runs/default", "run directory: checkpoints, logs, summaries")
     instance: str = doc("0", "instance id of this process within its service")
     stats_interval_s: float = doc(1.0, "seconds between progress beats on the stats topic")

@@ -36,10 +36,10 @@ class ServiceMetrics:
         self.rejected.labels(reason=reason).inc()
         self.rejected_count += 1
 
-    def serve(self, port: int) -> None:
-        """Expose /metrics on ``port`` (0: do not serve)."""
+    def serve(self, port: int, host: str = "0.0.0.0") -> None:
+        """Expose /metrics on ``host:port`` (port 0: do not serve)."""
         if port:
-            start_http_server(port, addr="0.0.0.0", registry=self.registry)
+            start_http_server(port, addr=host, registry=self.registry)
 
     def counter(self, name: str, doc: str, labels: tuple[str, ...] = ()) -> Counter:
         return Counter(name, doc, list(labels), registry=self.registry)

@@ -6,10 +6,10 @@ to inboxes and publishers, and loops until ``shell.stopping``.
 from __future__ import annotations
 
 import logging
-import queue
 import signal
 import sys
 import threading
+from collections import deque
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -23,18 +23,26 @@ from services.runtime.config import ServiceConfig, parse_config, write_config
 from services.runtime.metrics import ServiceMetrics
 
 log = logging.getLogger(__name__)
+DEFAULT_INBOX_BYTES = 256 * 2**20
+"""Payload bytes an inbox holds at most (a message may be 64 MiB; a queue of 256 of them would be 16 GiB)."""
 
 
 class Inbox:
     """A bounded queue of validated messages from one subscription.
 
-    Invalid payloads are counted in ``causeway_messages_rejected_total{reason}`` and dropped; when the
-    queue is full the oldest message is dropped and counted, so a slow consumer never blocks the bus.
+    Invalid payloads are counted in ``causeway_messages_rejected_total{reason}`` and dropped. The
+    queue is bounded in messages (``maxsize``) and in payload bytes (``max_bytes``): past either, the
+    oldest messages are dropped and counted (``{name}_queue_full``, ``{name}_bytes_full``), so a slow
+    consumer never blocks the bus and never holds more than ``max_bytes`` of messages.
     """
 
-    def __init__(self, name: str, expected: type | tuple[type, ...], maxsize: int, metrics: ServiceMetrics) -> None:
+    def __init__(self, name: str, expected: type | tuple[type, ...], maxsize: int, metrics: ServiceMetrics,
+                 max_bytes: int = DEFAULT_INBOX_BYTES) -> None:
         self.name, self.expected, self.metrics = name, expected, metrics
-        self.queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=maxsize)
+        self.maxsize, self.max_bytes = maxsize, max_bytes
+        self.items: deque[tuple[str, Any, int]] = deque()
+        self.bytes = 0
+        self.ready = threading.Condition()
 
     def on_payload(self, key: str, payload: bytes) -> None:
         try:
@@ -44,33 +52,32 @@ class Inbox:
             log.warning("rejected message on %s: %s", key, exc)
             return
         self.metrics.received.labels(type=type(message).TYPE).inc()
-        while True:
-            try:
-                self.queue.put_nowait((key, message))
-                break
-            except queue.Full:
-                try:
-                    self.queue.get_nowait()
-                    self.metrics.dropped.labels(reason=f"{self.name}_queue_full").inc()
-                except queue.Empty:
-                    pass
-        self.metrics.queue_depth.labels(queue=self.name).set(self.queue.qsize())
+        with self.ready:
+            while self.items and (len(self.items) >= self.maxsize or self.bytes + len(payload) > self.max_bytes):
+                reason = "queue_full" if len(self.items) >= self.maxsize else "bytes_full"
+                self.bytes -= self.items.popleft()[2]
+                self.metrics.dropped.labels(reason=f"{self.name}_{reason}").inc()
+            self.items.append((key, message, len(payload)))
+            self.bytes += len(payload)
+            self.ready.notify()
+        self.metrics.queue_depth.labels(queue=self.name).set(len(self.items))
+
+    def _pop(self) -> tuple[str, Any]:
+        key, message, size = self.items.popleft()
+        self.bytes -= size
+        return key, message
 
     def drain(self, limit: int = 1_000_000) -> list[tuple[str, Any]]:
-        items = []
-        while len(items) < limit:
-            try:
-                items.append(self.queue.get_nowait())
-            except queue.Empty:
-                break
-        self.metrics.queue_depth.labels(queue=self.name).set(self.queue.qsize())
+        with self.ready:
+            items = [self._pop() for _ in range(min(limit, len(self.items)))]
+        self.metrics.queue_depth.labels(queue=self.name).set(len(self.items))
         return items
 
     def get(self, timeout: float) -> tuple[str, Any] | None:
-        try:
-            return self.queue.get(timeout=timeout)
-        except queue.Empty:
-            return None
+        with self.ready:
+            if not self.items and not self.ready.wait_for(lambda: bool(self.items), timeout):
+                return None
+            return self._pop()
 
 
 class ServiceShell:
@@ -83,7 +90,7 @@ class ServiceShell:
             transport = ZenohTransport(cfg.zenoh_connect)
         self.transport = transport
         self.metrics = ServiceMetrics(service, cfg.instance)
-        self.metrics.serve(cfg.metrics_port)
+        self.metrics.serve(cfg.metrics_port, cfg.metrics_host)
         self.stopping = threading.Event()
         self.paused = False
         self.checkpoint_requested = False

@@ -1,6 +1,8 @@
 """Service processes: spawn, watch, restart with back-off, stop politely, then firmly."""
 from __future__ import annotations
 
+import ctypes
+import json
 import logging
 import os
 import signal
@@ -13,6 +15,7 @@ from pathlib import Path
 from services.runtime.checkpoint import CONFIG_ERROR_EXIT
 
 log = logging.getLogger("supervisor")
+PR_SET_PDEATHSIG = 1
 
 
 class FatalServiceError(RuntimeError):
@@ -38,7 +41,8 @@ class ManagedProcess:
         env = {**os.environ, **self.environ, "PYTHONUNBUFFERED": "1"}
         with open(self.log_path, "ab") as out:
             self.process = subprocess.Popen([sys.executable, "-m", self.module], env=env, stdout=out,
-                                            stderr=subprocess.STDOUT, start_new_session=True)
+                                            stderr=subprocess.STDOUT, start_new_session=True,
+                                            preexec_fn=_die_with_parent)
         log.info("started %s (pid %d)", self.name, self.process.pid)
 
     @property
@@ -81,6 +85,36 @@ class ManagedProcess:
             log.warning("%s did not stop in time; killing", self.name)
             self.process.kill()
             self.process.wait()
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: SIGTERM when the supervisor dies (Linux ``PR_SET_PDEATHSIG``), so a
+    killed supervisor leaves no service running (each checkpoints and exits on SIGTERM)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def leftovers(run_dir: Path) -> list[str]:
+    """Processes a previous supervisor of ``run_dir`` started that still run (from its processes.json):
+    ``"<what> (pid N)"``. A second run on the same directory must not start beside them."""
+    try:
+        table = json.loads((run_dir / "processes.json").read_text())
+    except (OSError, ValueError):
+        return []
+    found = []
+    candidates = [("supervisor", table.get("supervisor_pid"), "services.cli")] + [
+        (name, entry.get("pid"), entry.get("module", "")) for name, entry in table.get("processes", {}).items()]
+    for name, pid, module in candidates:
+        if isinstance(pid, int) and pid != os.getpid() and module and module in _cmdline(pid):
+            found.append(f"{name} (pid {pid})")
+    return found
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
 
 
 def stop_all(processes: list[ManagedProcess], timeout: float = 30.0) -> None:

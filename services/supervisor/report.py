@@ -70,12 +70,9 @@ def score_line(metrics: dict[str, float]) -> str:
     """One line of a report's headline scores (Table 3.1's beside ours, where present)."""
     if "f1" not in metrics:
         return "no ground truth to score against"
-    parts = [f"F1 {metrics['f1']:.3f}", f"accuracy {metrics['accuracy']:.3f}",
-             f"best-threshold F1 {metrics['best_threshold_f1']:.3f}"]
-    if "with_self_best_threshold_f1" in metrics:
-        parts.append(f"Table 3.1 scoring: F1 {metrics['with_self_best_threshold_f1']:.3f} "
-                     f"accuracy {metrics['with_self_best_threshold_accuracy']:.3f}")
-    return ", ".join(parts)
+    shown = (("f1", "F1"), ("accuracy", "accuracy"), ("best_threshold_f1", "best-threshold F1"),
+             ("with_self_best_threshold_f1", "Table 3.1 scoring: F1"), ("with_self_best_threshold_accuracy", "accuracy"))
+    return ", ".join(f"{label} {metrics[key]:.3f}" for key, label in shown if key in metrics)
 
 
 def object_scores(adjacency: np.ndarray, truth: np.ndarray | None, names: tuple[str, ...]) -> dict[str, Any] | None:

@@ -30,10 +30,11 @@ from services.bus.zenoh_transport import ZenohTransport
 from services.runtime.config import to_environ, write_config
 from services.supervisor.analysis import RunRecord, analyse, git_revision
 from services.supervisor.config import RunConfig
-from services.supervisor.processes import FatalServiceError, ManagedProcess, stop_all
+from services.supervisor.processes import FatalServiceError, ManagedProcess, leftovers, stop_all
 from services.supervisor.progress import Progress
 from services.supervisor.stop_rules import StopRules
-from services.supervisor.wiring import MODULES, learning_services, resolve, service_configs, worker_config
+from services.supervisor.wiring import (MODULES, check_ports_free, learning_services, resolve, service_configs,
+                                       worker_config)
 
 log = logging.getLogger("supervisor")
 
@@ -73,6 +74,15 @@ class Supervisor:
         proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log")
         self.processes[name] = proc
         return proc
+
+    def preflight(self) -> None:
+        """``ValueError`` if the run cannot start here: a port it needs is taken, or processes of an
+        earlier supervisor of this run directory still run."""
+        running = leftovers(self.run_dir)
+        if running:
+            raise ValueError(f"{self.run_dir} is in use: {', '.join(running)} still run; stop them "
+                             f"(causeway stop --run-dir {self.run_dir}, or kill the pids) or use another --run-dir")
+        check_ports_free(self.cfg)
 
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ space, a target metric against what the method and the environment can score.
 from __future__ import annotations
 
 import dataclasses
+import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,10 @@ from services.dashboard.config import DashboardConfig
 from services.env_worker.config import EnvWorkerConfig
 from services.runtime.config import RunSettings
 from services.supervisor.config import RunConfig
+
+LOOPBACK = "127.0.0.1"
+"""Where the local stack's services listen (/metrics, the page): nothing of a local run is reachable
+from another machine."""
 
 MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
            "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard",
@@ -83,7 +88,8 @@ def shared_settings(cfg: RunConfig) -> dict[str, Any]:
 
 def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict[str, object]:
     """The wiring: what each service is told (all of it lands in <run_dir>/config.json)."""
-    common = dict(shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir)
+    common = dict(shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect, run_dir=cfg.run_dir,
+                  metrics_host=LOOPBACK)
 
     def port(offset: int) -> int:
         return cfg.metrics_base_port + offset if cfg.metrics_base_port else 0
@@ -92,7 +98,7 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
     return {
         "dynamics-learner": dataclasses.replace(cfg.learner, **common, metrics_port=port(1), models=cfg.models),
         "graph-evaluator": dataclasses.replace(cfg.evaluator, **common, metrics_port=port(2)),
-        "dashboard": DashboardConfig(**common, metrics_port=port(3), http_host="127.0.0.1",
+        "dashboard": DashboardConfig(**common, metrics_port=port(3), http_host=LOOPBACK,
                                      http_port=cfg.dashboard_port, watch_run=cfg.run_id),
         "policy-learner": dataclasses.replace(
             cfg.policy, **common, metrics_port=port(4), algo=cfg.collector if cfg.collector != "random" else "ppo",
@@ -116,7 +122,7 @@ def learning_services(cfg: RunConfig) -> tuple[str, ...]:
 def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
     port = cfg.metrics_base_port + 10 + index if cfg.metrics_base_port else 0
     return dataclasses.replace(cfg.worker, **shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect,
-                               run_dir=cfg.run_dir, metrics_port=port, instance=str(index), env=cfg.env,
+                               run_dir=cfg.run_dir, metrics_port=port, metrics_host=LOOPBACK, instance=str(index), env=cfg.env,
                                env_options=cfg.env_options, worker_index=index,
                                follow_policy=cfg.collector != "random", local_graphs=scores_local_graphs(cfg))
 
@@ -137,3 +143,30 @@ def env_kwargs(cfg: RunConfig) -> dict[str, Any]:
 def run_env_spec(cfg: RunConfig) -> EnvSpec:
     """The EnvSpec of the run's environment, as its first env-worker builds it."""
     return make_env(cfg.env, **env_kwargs(cfg)).unwrapped.env_spec()
+
+
+def ports(cfg: RunConfig) -> dict[str, int]:
+    """Every TCP port the run will listen on (127.0.0.1), by what listens there."""
+    out = {"router (--router-port)": cfg.router_port}
+    if cfg.dashboard_port:
+        out["live page (--dashboard-port)"] = cfg.dashboard_port
+    if cfg.metrics_base_port:
+        configs = service_configs(cfg, "")
+        for name in learning_services(cfg) + (("dashboard",) if cfg.dashboard_port else ()):
+            out[f"{name} /metrics (--metrics-base-port)"] = configs[name].metrics_port
+        for i in range(cfg.workers):
+            out[f"env-worker {i} /metrics (--metrics-base-port)"] = worker_config(cfg, "", i).metrics_port
+    return out
+
+
+def check_ports_free(cfg: RunConfig) -> None:
+    """``ValueError`` naming the first port the run needs that something else already holds."""
+    for what, port in ports(cfg).items():
+        if not 0 < port <= 65535:
+            raise ValueError(f"{what}: port {port} is outside 1-65535")
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            try:
+                probe.bind((LOOPBACK, port))
+            except OSError as exc:
+                raise ValueError(f"{what}: port {port} on {LOOPBACK} is in use ({exc.strerror}); "
+                                 f"choose another or 0 where a free one may be picked") from None

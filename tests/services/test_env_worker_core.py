@@ -41,3 +41,15 @@ def test_replicas_derive_distinct_indices_from_hostname(monkeypatch) -> None:
     two = resolve_worker_index(cfg)
     assert one.worker_index != two.worker_index and one.instance == "causeway-env-worker-1"
     assert resolve_worker_index(dataclasses.replace(cfg, worker_index=3)).worker_index == 3
+
+
+def test_a_restarted_worker_draws_new_seeds_and_episode_ids(tmp_path) -> None:
+    from services.env_worker.core import GENERATION_EPISODES, next_generation
+
+    path = tmp_path / "checkpoints" / "env-worker-0.json"
+    assert [next_generation(path) for _ in range(3)] == [0, 1, 2]
+    cfg = build_config(EnvWorkerConfig, num_objects=3, batch_steps=64)
+    first, again, restarted = (EnvWorkerCore(cfg, g).collect() for g in (0, 0, 1))
+    assert np.array_equal(first.state, again.state)
+    assert not np.array_equal(first.state, restarted.state)
+    assert restarted.episode_id.min() >= GENERATION_EPISODES

@@ -1,0 +1,4 @@
+"""A stand-in service process for supervision tests: sleeps until signalled."""
+import time
+
+time.sleep(120)

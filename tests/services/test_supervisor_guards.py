@@ -1,0 +1,102 @@
+"""What the local supervisor refuses before it starts, and what it leaves behind when killed."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from services.bus.router import free_tcp_port
+from services.cli import main as cli_main
+from services.runtime.config import build_config
+from services.supervisor.config import RunConfig
+from services.supervisor.processes import leftovers
+from services.supervisor.wiring import check_ports_free, ports, resolve
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}").exists() and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]
+
+
+def test_a_port_in_use_is_refused_with_what_needs_it(tmp_path, capsys) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        taken = holder.getsockname()[1]
+        cfg = resolve(build_config(RunConfig, router_port=taken, run_dir=str(tmp_path)))
+        with pytest.raises(ValueError, match=f"router \\(--router-port\\): port {taken} on 127.0.0.1 is in use"):
+            check_ports_free(cfg)
+        code = cli_main(["run", "--router-port", str(taken), "--run-dir", str(tmp_path / "r"), "--progress", "false"])
+        assert code == 2 and f"port {taken}" in capsys.readouterr().err
+    free = resolve(build_config(RunConfig, router_port=free_tcp_port(), metrics_base_port=0, dashboard_port=0))
+    check_ports_free(free)
+    assert list(ports(free)) == ["router (--router-port)"]
+
+
+def test_every_listening_port_of_the_run_is_checked() -> None:
+    cfg = resolve(build_config(RunConfig, router_port=7447, metrics_base_port=9100, workers=2, collector="ppo"))
+    assert sorted(ports(cfg).values()) == [7447, 8080, 9101, 9102, 9103, 9104, 9110, 9111]
+
+
+def test_a_second_run_on_a_directory_still_in_use_is_refused(tmp_path) -> None:
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "services.env_worker"])
+    try:
+        table = {"router": "tcp/127.0.0.1:1", "supervisor_pid": 999_999_999,
+                 "processes": {"env-worker-0": {"pid": child.pid, "module": "services.env_worker"},
+                               "dynamics-learner": {"pid": os.getpid(), "module": "services.dynamics_learner"}}}
+        (tmp_path / "processes.json").write_text(json.dumps(table))
+        assert leftovers(tmp_path) == [f"env-worker-0 (pid {child.pid})"]
+    finally:
+        child.kill()
+        child.wait()
+    assert leftovers(tmp_path) == []
+
+
+def test_services_die_with_a_killed_supervisor(tmp_path) -> None:
+    parent = textwrap.dedent(f"""
+        import os, signal, sys, time
+        from pathlib import Path
+        from services.supervisor.processes import ManagedProcess
+        proc = ManagedProcess("sleeper", "tests.services.sleeper", {{}}, Path({str(tmp_path)!r}) / "sleeper.log")
+        proc.start()
+        print(proc.pid, flush=True)
+        time.sleep(60)
+    """)
+    supervisor = subprocess.Popen([sys.executable, "-c", parent], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    child = int(supervisor.stdout.readline())
+    assert _alive(child)
+    supervisor.send_signal(signal.SIGKILL)
+    supervisor.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _alive(child):
+        time.sleep(0.05)
+    assert not _alive(child), "a service outlived its supervisor"
+
+
+def test_an_inbox_is_bounded_in_bytes_as_well_as_messages() -> None:
+    from proto.codec import encode
+    from proto.messages import Control
+    from services.runtime.metrics import ServiceMetrics
+    from services.runtime.shell import Inbox
+
+    metrics = ServiceMetrics("test", "0")
+    inbox = Inbox("control", Control, maxsize=100, metrics=metrics, max_bytes=3 * len(encode(Control("stop", "x" * 500))))
+    for i in range(5):
+        inbox.on_payload("k", encode(Control("stop", f"{i}" * 500)))
+    kept = [message.argument[0] for _, message in inbox.drain()]
+    assert kept == ["2", "3", "4"] and inbox.bytes == 0
+    assert metrics.dropped.labels(reason="control_bytes_full")._value.get() == 2
+    assert inbox.get(timeout=0.01) is None
