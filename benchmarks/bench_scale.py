@@ -1,0 +1,198 @@
+"""How CDL's cost grows with the number of factors (issue 26): Chemical `full` and a random sparse DAG
+with 5, 10, 20 and 40 objects (15 to 120 factors); the random DAG has 2 edges per object.
+
+Per size, in a fresh process (so peak memory is that size's own): seconds per update (batch 64, one
+thread), peak resident memory of a learner process (model, Adam state, a 20k-transition replay),
+seconds per all-pairs CMI evaluation of 2,000 transitions, seconds of the final graph (CMI on every
+held-out transition, 20k here), and the time to a best-threshold F1 of 0.9 of the CMI graph with a
+wall-clock budget per size (training in-process, CMI of 2,000 held-out transitions every few
+hundred updates). Prints a table, the fitted growth exponents (log-log least squares over the sizes)
+and writes a log-log plot; ``--profile`` prints where an update and a CMI evaluation spend their
+time at the largest size.
+
+    python -m benchmarks.bench_scale [--sizes 5 10 20 40] [--graphs full random] [--budget 300]
+        [--out benchmark-results/scale] [--profile]
+
+Timings are of this 2-core machine with one torch thread; the exponents, not the seconds, are the
+result to carry elsewhere.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from causal.cdl import CDLConfig
+from causal.cdl_trainer import CDLTrainer
+from causal.factored import FactorLayout
+from causal.graph_metrics import score_graph
+from envs.chemical import ChemicalEnv
+from envs.graphs import random_dag
+
+METRICS = ("update_s", "cmi_2k_s", "final_graph_s", "peak_rss_mb")
+TRANSITIONS, HELD_OUT, EVAL = 20_000, 20_000, 2_000
+
+
+def make_env(graph: str, objects: int) -> ChemicalEnv:
+    dag = random_dag(objects, min(2 * objects, objects * (objects - 1) // 2), seed=0) if graph == "random" else graph
+    return ChemicalEnv(graph=dag, num_objects=objects)
+
+
+def collect(env: ChemicalEnv, count: int, seed: int) -> tuple[torch.Tensor, ...]:
+    """``count`` uniformly random transitions (the chapter's Chemical collection)."""
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    state = np.empty((count, len(obs)), np.float32)
+    action = rng.integers(0, env.action_space.n, (count, 1)).astype(np.float32)
+    nxt = np.empty_like(state)
+    for t in range(count):
+        state[t] = obs
+        obs, _, _, truncated, _ = env.step(int(action[t, 0]))
+        nxt[t] = obs
+        if truncated:
+            obs, _ = env.reset()
+    return torch.from_numpy(state), torch.from_numpy(action), torch.from_numpy(nxt)
+
+
+def timed(fn, repeats: int) -> float:
+    started = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    return (time.perf_counter() - started) / repeats
+
+
+def one_size(graph: str, objects: int, budget: float, seed: int = 0) -> dict[str, Any]:
+    """Every figure of one (graph, size); run in its own process."""
+    torch.set_num_threads(1)
+    env = make_env(graph, objects)
+    layout = FactorLayout.from_spec(env.env_spec())
+    train, held = collect(env, TRANSITIONS, seed), collect(env, HELD_OUT, seed + 1)
+    trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
+    rng = np.random.default_rng(seed)
+
+    def update() -> None:
+        index = torch.from_numpy(rng.integers(0, TRANSITIONS, 64))
+        trainer.update(*(x[index] for x in train))
+
+    timed(update, 3)  # warm-up
+    out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors,
+                           "parameters": sum(p.numel() for p in trainer.model.parameters()),
+                           "update_s": timed(update, 10)}
+    sample = tuple(x[:EVAL] for x in held)
+    out["cmi_2k_s"] = timed(lambda: trainer.model.cmi(*sample), 2)
+    out["final_graph_s"] = timed(lambda: trainer.model.cmi(*held), 1)
+    out.update(time_to_f1(trainer, update, sample, env.global_graph, budget))
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+def time_to_f1(trainer: CDLTrainer, update, sample: tuple[torch.Tensor, ...], truth: np.ndarray,
+               budget: float, target: float = 0.9, every: int = 200) -> dict[str, Any]:
+    """Train until the CMI graph's best-threshold F1 reaches ``target`` or ``budget`` seconds pass."""
+    started, best = time.perf_counter(), 0.0
+    while time.perf_counter() - started < budget:
+        for _ in range(every):
+            update()
+        cmi = trainer.model.cmi(*sample).numpy()
+        best = score_graph(cmi, truth, trainer.cfg.cmi_threshold)["best_threshold_f1"]
+        trainer.set_parents(cmi >= trainer.cfg.cmi_threshold)
+        if best >= target:
+            return {"to_f1_0.9_s": time.perf_counter() - started, "updates_to_f1": trainer.updates,
+                    "best_f1_reached": best}
+    return {"to_f1_0.9_s": None, "updates_to_f1": None, "best_f1_reached": best, "budget_s": budget}
+
+
+def exponents(rows: list[dict[str, Any]], key: str) -> float | None:
+    """Slope of log(key) on log(factors): the growth exponent."""
+    points = [(r["factors"], r[key]) for r in rows if r.get(key)]
+    if len(points) < 2:
+        return None
+    x, y = np.log([p[0] for p in points]), np.log([p[1] for p in points])
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for graph in dict.fromkeys(r["graph"] for r in rows):
+        mine = [r for r in rows if r["graph"] == graph]
+        for key, style in (("update_s", "-o"), ("cmi_2k_s", "--s"), ("final_graph_s", ":^")):
+            ax.loglog([r["factors"] for r in mine], [r[key] for r in mine], style,
+                      label=f"{graph}: {key} (slope {exponents(mine, key):.2f})")
+    ax.set_xlabel("state factors d_S")
+    ax.set_ylabel("seconds")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def profile(graph: str, objects: int) -> None:
+    """Where one update and one CMI evaluation spend their time (torch's operator profile)."""
+    torch.set_num_threads(1)
+    env = make_env(graph, objects)
+    trainer = CDLTrainer(FactorLayout.from_spec(env.env_spec()), CDLConfig())
+    data = collect(env, 2_000, 0)
+    batch = tuple(x[:64] for x in data)
+    trainer.update(*batch)
+    from torch.profiler import ProfilerActivity, profile as torch_profile
+
+    for name, fn in (("update", lambda: trainer.update(*batch)), ("cmi 2k", lambda: trainer.model.cmi(*data))):
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            fn()
+        print(f"\n== {name}, {graph} {objects} objects ==")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=8))
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sizes", nargs="+", type=int, default=[5, 10, 20, 40])
+    p.add_argument("--graphs", nargs="+", default=["full", "random"], choices=["full", "random", "chain", "collider"])
+    p.add_argument("--budget", type=float, default=300.0, help="seconds per size for the time to F1 0.9")
+    p.add_argument("--out", type=Path, default=Path("benchmark-results/scale"))
+    p.add_argument("--profile", action="store_true")
+    p.add_argument("--one", nargs=2, metavar=("GRAPH", "OBJECTS"), help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.one:
+        print(json.dumps(one_size(args.one[0], int(args.one[1]), args.budget)))
+        return
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for graph in args.graphs:
+        for n in args.sizes:
+            result = subprocess.run([sys.executable, "-m", "benchmarks.bench_scale", "--one", graph, str(n),
+                                     "--budget", str(args.budget)], capture_output=True, text=True, check=True)
+            rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), flush=True)
+    (args.out / "scale.json").write_text(json.dumps(rows, indent=1))
+    print(f"\n| graph | objects | d_S | parameters | s/update | s/CMI (2k) | s final graph (20k) | peak RSS MB | "
+          f"s to best F1 0.9 | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        reach = f"{r['to_f1_0.9_s']:.0f}" if r["to_f1_0.9_s"] else f"> {r['budget_s']:.0f}"
+        print(f"| {r['graph']} | {r['objects']} | {r['factors']} | {r['parameters']:,} | {r['update_s']:.3f} | "
+              f"{r['cmi_2k_s']:.2f} | {r['final_graph_s']:.1f} | {r['peak_rss_mb']:.0f} | {reach} | "
+              f"{r['best_f1_reached']:.3f} |")
+    for graph in args.graphs:
+        mine = [r for r in rows if r["graph"] == graph]
+        print(f"{graph}: growth exponents in d_S: " + ", ".join(f"{k} {exponents(mine, k):.2f}" for k in METRICS))
+    plot(rows, args.out / "scale.png")
+    print(f"wrote {args.out / 'scale.json'} and {args.out / 'scale.png'}")
+    if args.profile:
+        profile(args.graphs[0], max(args.sizes))
+
+
+if __name__ == "__main__":
+    main()
