@@ -23,6 +23,8 @@ class CDLTrainer:
         n = layout.num_factors
         self.parents = torch.ones(n, n + 1, dtype=torch.bool)
         self.updates = 0
+        self.nonfinite = 0
+        """Updates in a row skipped for a non-finite loss or gradient (reported as ``nonfinite_loss``)."""
 
     def set_parents(self, adjacency: np.ndarray) -> None:
         """Parents PA(S^j) for the causal term, from a CMI graph [d_S, d_S + 1]."""
@@ -40,7 +42,11 @@ class CDLTrainer:
             group["lr"] = lr
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+        norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+        if not (torch.isfinite(loss) and torch.isfinite(norm)):
+            self.nonfinite += 1  # no step: non-finite values never reach the parameters
+            return {"nonfinite_loss": float(self.nonfinite)}
+        self.nonfinite = 0
         self.optimizer.step()
         self.updates += 1
         per_term = nll.detach().mean(dim=(0, 2))

@@ -10,9 +10,16 @@ from proto.messages import GraphReport, TransitionBatch
 from services.bus.base import Transport
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.dynamics_learner.core import DynamicsLearnerCore
+from services.runtime.checkpoint import CONFIG_ERROR_EXIT
 from services.runtime.shell import Inbox, ServiceShell, service_main
 
 SERVICE = "dynamics-learner"
+NONFINITE_LIMIT = 100
+"""Updates in a row with a non-finite loss after which the learner gives up (a configuration error)."""
+
+
+class NonFiniteTraining(RuntimeError):
+    """Training cannot go on: every update's loss is NaN or infinite."""
 log = logging.getLogger(SERVICE)
 
 
@@ -30,6 +37,8 @@ class _Metrics:
         self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
         self.lr = m.gauge("causeway_dynamics_learning_rate", "Learning rate of the next dynamics-model update (CDL: --cdl-lr-decay-updates)")
         self.ratio = m.gauge("causeway_dynamics_updates_per_env_step", "Updates per env step ingested so far")
+        self.nonfinite = m.counter("causeway_dynamics_nonfinite_updates",
+                                   "Updates skipped because the loss or gradient was not finite")
         self.ratio_wait = m.counter("causeway_dynamics_ratio_wait_seconds",
                                     "Seconds the learner waited for env steps at --updates-per-env-step")
 
@@ -74,6 +83,9 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
             shell.beat(core.progress())
             if cfg.max_updates and core.trainer.updates >= cfg.max_updates:
                 break
+    except NonFiniteTraining as exc:
+        log.error("%s", exc)
+        raise SystemExit(CONFIG_ERROR_EXIT) from exc
     finally:
         if core.trainer.updates:
             _publish(shell, core, latest, metrics)
@@ -88,6 +100,12 @@ def _train(core: DynamicsLearnerCore, metrics: _Metrics) -> None:
     t0 = time.perf_counter()
     stats = core.train_step()
     metrics.update_seconds.observe(time.perf_counter() - t0)
+    if "nonfinite_loss" in stats:
+        metrics.nonfinite.inc()
+        if stats["nonfinite_loss"] >= NONFINITE_LIMIT:
+            raise NonFiniteTraining(f"the loss was not finite for {NONFINITE_LIMIT} updates in a row (no step was "
+                                    f"taken): the learning rate is likely too high for this model")
+        return
     metrics.updates.inc()
     for term, value in stats.items():
         if term.startswith("nll_"):

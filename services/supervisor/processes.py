@@ -60,7 +60,8 @@ class ManagedProcess:
             code = self.process.returncode
             self.exit_codes.append(code)
             if code == CONFIG_ERROR_EXIT:
-                raise FatalServiceError(f"{self.name} refused to start (configuration error); see {self.log_path}")
+                raise FatalServiceError(f"{self.name} stopped for a configuration reason: "
+                                        f"{self.last_error() or 'see its log'} ({self.log_path})")
             if self.restarts >= self.max_restarts:
                 raise FatalServiceError(f"{self.name} crashed {self.restarts + 1} times; last exit code {code}; see {self.log_path}")
             self.next_start = now + min(0.5 * 2 ** self.restarts, 10.0)
@@ -71,6 +72,15 @@ class ManagedProcess:
             self.start()
             return True
         return False
+
+    def last_error(self) -> str:
+        """The last ERROR line of the process's log (its reason for a configuration exit), or ''."""
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()[-200:]
+        except OSError:
+            return ""
+        errors = [line for line in lines if " ERROR " in line or ": error: " in line]
+        return errors[-1].split(": ", 1)[-1].strip() if errors else ""
 
     def terminate(self) -> None:
         if self.alive():

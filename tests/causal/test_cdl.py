@@ -201,3 +201,15 @@ def test_same_seed_same_data_gives_identical_training() -> None:
         runs.append((losses, export_tensors(trainer.model)))
     assert runs[0][0] == runs[1][0]
     assert all(np.array_equal(runs[0][1][k], runs[1][1][k]) for k in runs[0][1])
+
+
+def test_a_non_finite_loss_takes_no_step_and_is_reported() -> None:
+    trainer = CDLTrainer(LAYOUT, CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8), seed=0)
+    state, action, next_state = toy_batch(np.random.default_rng(0), 32)
+    huge = state.clone()
+    huge[:, :3] = 3e38  # finite values that overflow the likelihood
+    before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
+    assert trainer.update(huge, action, huge) == {"nonfinite_loss": 1.0}
+    assert trainer.update(huge, action, huge) == {"nonfinite_loss": 2.0} and trainer.updates == 0
+    assert all(torch.equal(before[k], v) for k, v in trainer.model.state_dict().items())
+    assert "nll_full" in trainer.update(state, action, next_state) and trainer.nonfinite == 0

@@ -40,7 +40,7 @@ LEARNER_METRICS = {
     "causeway_learner_env_steps", "causeway_weights_version", "causeway_weights_bytes_published_total",
     "causeway_update_seconds", "causeway_checkpoints_total",
     "causeway_dynamics_updates_per_env_step", "causeway_dynamics_ratio_wait_seconds_total",
-    "causeway_dynamics_learning_rate",
+    "causeway_dynamics_learning_rate", "causeway_dynamics_nonfinite_updates_total",
 }
 EVALUATOR_METRICS = {
     "causeway_graph_accuracy_ratio", "causeway_graph_precision_ratio", "causeway_graph_recall_ratio",

@@ -100,3 +100,18 @@ def test_an_inbox_is_bounded_in_bytes_as_well_as_messages() -> None:
     assert kept == ["2", "3", "4"] and inbox.bytes == 0
     assert metrics.dropped.labels(reason="control_bytes_full")._value.get() == 2
     assert inbox.get(timeout=0.01) is None
+
+
+def test_a_configuration_exit_stops_the_run_with_the_services_reason(tmp_path) -> None:
+    from services.runtime.checkpoint import CONFIG_ERROR_EXIT
+    from services.supervisor.processes import FatalServiceError, ManagedProcess
+
+    log = tmp_path / "dynamics-learner.log"
+    log.write_text("2026-12-02 05:00:00 dynamics-learner INFO x: started\n"
+                   "2026-12-02 05:00:09 dynamics-learner ERROR dynamics-learner: the loss was not finite for 100 "
+                   "updates in a row (no step was taken): the learning rate is likely too high for this model\n")
+    proc = ManagedProcess("dynamics-learner", "services.dynamics_learner", {}, log)
+    proc.process = subprocess.Popen([sys.executable, "-c", f"raise SystemExit({CONFIG_ERROR_EXIT})"])
+    proc.process.wait()
+    with pytest.raises(FatalServiceError, match="the learning rate is likely too high"):
+        proc.check(time.monotonic())
