@@ -55,3 +55,36 @@ def cdl_abstraction(adjacency: np.ndarray) -> Abstraction:
     relevant = _reach(controllable, parents) - controllable
     irrelevant = set(range(n)) - controllable - relevant
     return Abstraction(tuple(sorted(controllable)), tuple(sorted(relevant)), tuple(sorted(irrelevant)))
+
+
+def reward_ancestors(adjacency: np.ndarray, reward_parents: np.ndarray) -> set[int]:
+    """AN(R) of Theorem 4.1: the state factors among the reward's parents (``[d_S + 1]``, action last)
+    and every factor that reaches one of them through the dynamics graph (breadth-first over parents)."""
+    adj = np.asarray(adjacency, dtype=bool)
+    n = adj.shape[0]
+    parents = {j: {i for i in range(n) if adj[j, i] and i != j} for j in range(n)}
+    start = {i for i in range(n) if reward_parents[i]}
+    return _reach(start, parents)
+
+
+def minimal_abstraction(adjacency: np.ndarray, reward_parents: np.ndarray | None = None) -> Abstraction:
+    """CBM's task abstraction (Theorem 4.1): keep AN(R), the reward's parents and their ancestors in the
+    dynamics graph; drop the rest. In CDL's three classes: the kept factors the action reaches are
+    ``controllable``, the other kept ones ``action_relevant`` (a reward parent the action cannot move,
+    like chapter 4's sun, is kept there), and every dropped factor ``action_irrelevant``, so
+    ``Abstraction.kept`` is AN(R). Without reward parents (a method that learns none) it is CDL's."""
+    if reward_parents is None:
+        return cdl_abstraction(adjacency)
+    kept = reward_ancestors(adjacency, reward_parents)
+    reached = set(cdl_abstraction(adjacency).controllable)
+    n = np.asarray(adjacency).shape[0]
+    return Abstraction(tuple(sorted(kept & reached)), tuple(sorted(kept - reached)),
+                       tuple(sorted(set(range(n)) - kept)))
+
+
+def abstraction_accuracy(kept: tuple[int, ...] | set[int], true_kept: tuple[int, ...] | set[int],
+                         num_factors: int) -> float:
+    """Share of state factors an abstraction classifies as the true one does (kept or dropped): the
+    chapter's "# correctly classified state factors / total state factors"."""
+    kept, true_kept = set(kept), set(true_kept)
+    return sum((j in kept) == (j in true_kept) for j in range(num_factors)) / max(num_factors, 1)

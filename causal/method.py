@@ -94,6 +94,11 @@ class RewardGraphEstimator(Protocol):
 TaskAbstraction = Callable[[np.ndarray], Abstraction]
 """A global graph (with self-edges) -> which factors a policy sees (``Abstraction.kept``)."""
 
+RewardTaskAbstraction = Callable[[np.ndarray, "np.ndarray | None"], Abstraction]
+"""A task abstraction that also reads the reward's parents (``[d_S + 1]`` 0/1, action last; None when
+unknown): chapter 4's minimal abstraction. A method with a :attr:`Method.reward_graph` registers one as
+its ``abstraction``; :func:`task_abstraction` passes it the learned reward parents."""
+
 RolloutStep = Callable[..., Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]
 """``(model, parents [d_S, d_S + 1] bool, factors=None) -> step(state, action) -> next state``: the
 model used as a simulator (k-step prediction, planning), where the method's model can be one."""
@@ -138,6 +143,14 @@ class Method:
         for key in self.resumable:
             model.get(self.name, {}).pop(key, None)
         return model
+
+
+def task_abstraction(method: Method, adjacency: np.ndarray, reward_parents: np.ndarray | None = None) -> Abstraction:
+    """The method's abstraction of ``adjacency``: with the reward's parents for a method that has a reward
+    graph (:data:`RewardTaskAbstraction`), from the graph alone otherwise (:data:`TaskAbstraction`)."""
+    if method.reward_graph is not None:
+        return method.abstraction(adjacency, reward_parents)
+    return method.abstraction(adjacency)
 
 
 def model_config_json(method: str, layout: FactorLayout, cfg: Any) -> str:

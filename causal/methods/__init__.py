@@ -21,6 +21,7 @@ METHODS: dict[str, str] = {
     "cdl": "causal.methods.cdl",
     "modular": "causal.methods.dense:MODULAR",
     "monolithic": "causal.methods.dense:MONOLITHIC",
+    "cbm": "causal.methods.cbm",
 }
 """Registered methods: name -> ``module`` defining ``METHOD`` (or ``module:NAME``)."""
 

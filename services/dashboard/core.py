@@ -14,9 +14,10 @@ from typing import TypeVar
 from proto.messages import GraphReport, LocalGraphReport, ServiceStats
 from services.dashboard.cells import cause_names, classify, count_outcomes, short
 from services.dashboard.local_graph import LocalPoint, local_graph_document
+from services.dashboard.reward_graph import reward_document
 
 CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1", "identifiable_f1",
-                 "with_self_best_threshold_f1", "with_self_accuracy")
+                 "with_self_best_threshold_f1", "with_self_accuracy", "reward_f1", "abstraction_accuracy")
 ABSTRACTION_CLASSES = (("controllable", "Controllable"), ("action_relevant", "Action-relevant"),
                        ("action_irrelevant", "Action-irrelevant"))
 
@@ -40,6 +41,10 @@ class CurvePoint:
     """Best-threshold F1 over every entry, self-edges counted found: Table 3.1's scoring (README, Scoring)."""
     with_self_accuracy: float | None = None
     """Accuracy at the working threshold, scored the same way."""
+    reward_f1: float | None = None
+    """F1 of the learned reward parents against the true ones (a method with a reward graph: CBM)."""
+    abstraction_accuracy: float | None = None
+    """Share of factors the minimal task abstraction keeps or drops as the true one does (CBM)."""
 
     @classmethod
     def of(cls, report: GraphReport, time: float) -> CurvePoint:
@@ -201,9 +206,12 @@ def graph_document(report: GraphReport, received_at: float) -> dict:
     counts = None if truth is None else count_outcomes(outcome)
     classes = [{"key": key, "label": label, "factors": [{"index": i, "name": names[i]} for i in getattr(report, key)]}
                for key, label in ABSTRACTION_CLASSES]
+    reward = reward_document(report)
     return {"kind": report.kind, "weights_version": report.weights_version, "env_steps": report.env_steps,
             "updates": report.updates, "num_heldout": report.num_heldout, "timestamp": report.timestamp,
             "received_at": received_at, "threshold": report.threshold, "factor_names": names,
             "cause_names": cause_names(names), "metrics": dict(report.metrics),
-            "cmi_max": short(report.cmi.max()), "confusion": counts, "cells": cells, "classes": classes}
+            "cmi_max": short(report.cmi.max()), "confusion": counts, "cells": cells,
+            "classes": classes if reward is None else reward["classes"], "reward": reward,
+            "abstraction": "cdl" if reward is None else "minimal"}
 

@@ -1,5 +1,5 @@
 """graph-evaluator core: held-out set, the method's edge scores (CDL: CMI) with a moving average,
-graph, abstraction, scores. No bus; no particular method (the run's comes from the registry)."""
+graph, reward graph (CBM), abstraction, scores. No bus; no particular method (the run's comes from the registry)."""
 from __future__ import annotations
 
 import json
@@ -13,7 +13,7 @@ from torch import nn
 
 from causal.abstraction import with_self_edges
 from causal.graph_metrics import score_graph
-from causal.method import import_tensors
+from causal.method import import_tensors, task_abstraction
 from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
@@ -21,6 +21,7 @@ from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, LocalGraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.local import LocalGraphScorer
+from services.graph_evaluator.reward import abstraction_metrics, reward_metrics
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
 def constant_factor_indices(spec: EnvSpec) -> tuple[int, ...]:
@@ -52,6 +53,9 @@ class GraphEvaluatorCore:
         self.cmi_ema: np.ndarray | None = None
         self.threshold = float("nan")
         """Edge threshold of the loaded model's global-graph estimator (its own configuration)."""
+        self.reward_ema: np.ndarray | None = None
+        """Moving average of the reward graph's scores ``[d_S + 1]``, for a method with a reward graph."""
+        self.reward_threshold = float("nan")
         self.history: list[dict[str, float]] = []
 
     def ingest(self, batch: TransitionBatch) -> int:
@@ -74,6 +78,8 @@ class GraphEvaluatorCore:
             self.model, self.model_config = model_from_config_json(weights.config_json), weights.config_json
             if self.method.global_graph is not None:
                 self.threshold = float(self.method.global_graph.threshold(self.model))
+            if self.method.reward_graph is not None:
+                self.reward_threshold = float(self.method.reward_graph.threshold(self.model))
         import_tensors(self.model, weights.tensors)
         self.weights = weights
 
@@ -96,16 +102,27 @@ class GraphEvaluatorCore:
         """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions."""
         return np.asarray(self.method.global_graph.scores(self.model, state, action, next_state), dtype=np.float32)
 
+    def reward_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                      reward: torch.Tensor) -> np.ndarray | None:
+        """The method's reward-graph scores ``[d_S + 1]`` on these transitions (None without a reward graph)."""
+        if self.method.reward_graph is None:
+            return None
+        scores = self.method.reward_graph.scores(self.model, state, action, next_state, reward)
+        return np.asarray(scores, dtype=np.float32)
+
     def evaluate(self) -> GraphReport:
-        """Edge scores for every edge on held-out data, smoothed, thresholded and scored."""
+        """Edge scores for every edge (and the reward's, for a method with a reward graph) on held-out
+        data, smoothed, thresholded and scored."""
         assert self.model is not None and self.weights is not None
         n = min(self.cfg.eval_samples, self.heldout.size)
         index = self.heldout.rng.choice(self.heldout.size, n, replace=False)
-        s, a, nxt = (torch.from_numpy(x[: self.heldout.size][index]) for x in
-                     (self.heldout.state, self.heldout.action, self.heldout.next_state))
-        cmi = self.edge_scores(s, a, nxt)
+        s, a, nxt, r = (torch.from_numpy(x[: self.heldout.size][index]) for x in
+                        (self.heldout.state, self.heldout.action, self.heldout.next_state, self.heldout.reward))
+        cmi, rewards = self.edge_scores(s, a, nxt), self.reward_scores(s, a, nxt, r)
         alpha = self.previous_weight(self.weights.updates)
         self.cmi_ema = cmi if self.cmi_ema is None else alpha * self.cmi_ema + (1 - alpha) * cmi
+        if rewards is not None:
+            self.reward_ema = rewards if self.reward_ema is None else alpha * self.reward_ema + (1 - alpha) * rewards
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(n)
 
@@ -114,7 +131,9 @@ class GraphEvaluatorCore:
         held-out transition, on its own (the running average, which mixes earlier models and
         draws of ``eval_samples``, is replaced by it)."""
         assert self.model is not None and self.weights is not None
-        self.cmi_ema = self.edge_scores(*self.heldout.all())
+        transitions = self.heldout.all()
+        self.cmi_ema = self.edge_scores(*transitions)
+        self.reward_ema = self.reward_scores(*transitions, torch.from_numpy(self.heldout.reward[: self.heldout.size]))
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(self.heldout.size)
 
@@ -132,9 +151,14 @@ class GraphEvaluatorCore:
     def report(self, num_heldout: int) -> GraphReport:
         cmi, threshold = self.cmi_ema.astype(np.float32), self.threshold
         adjacency = with_self_edges(cmi >= threshold).astype(np.uint8)
-        abstraction = self.method.abstraction(adjacency)
+        rewards = None if self.reward_ema is None else self.reward_ema.astype(np.float32)
+        parents = None if rewards is None else (rewards >= self.reward_threshold).astype(np.uint8)
+        abstraction = task_abstraction(self.method, adjacency, parents)
         truth = self.spec.global_graph
         metrics = score_graph(cmi, truth, threshold, self.constant_factors) if truth is not None else {}
+        if rewards is not None:
+            metrics.update(reward_metrics(rewards, parents, self.spec.reward_parents))
+            metrics.update(abstraction_metrics(adjacency, abstraction, truth, self.spec.reward_parents))
         w = self.weights
         self.history.append({"env_steps": w.env_steps, "updates": w.updates, "time": time.time(), **metrics})
         return GraphReport(kind=self.kind, weights_version=w.version, env_steps=w.env_steps, updates=w.updates,
@@ -142,7 +166,10 @@ class GraphEvaluatorCore:
                            threshold=threshold, controllable=abstraction.controllable,
                            action_relevant=abstraction.action_relevant,
                            action_irrelevant=abstraction.action_irrelevant, metrics=metrics,
-                           true_graph=truth, num_heldout=num_heldout, timestamp=time.time())
+                           true_graph=truth, num_heldout=num_heldout, timestamp=time.time(),
+                           reward_scores=rewards, reward_parents=parents,
+                           reward_threshold=self.reward_threshold if rewards is not None else 0.0,
+                           true_reward_parents=self.spec.reward_parents if rewards is not None else None)
 
     def fingerprint(self) -> str:
         """What a checkpoint must match to be resumed: the environment (held-out data is env-specific);
@@ -156,6 +183,8 @@ class GraphEvaluatorCore:
                  "evaluated_version": self.evaluated_version, "evaluated_updates": self.evaluated_updates}
         if self.cmi_ema is not None:
             state["cmi_ema"] = torch.from_numpy(self.cmi_ema)
+        if self.reward_ema is not None:
+            state["reward_ema"] = torch.from_numpy(self.reward_ema)
         if self.local is not None:
             state["local"] = self.local.state_dict()
         save_checkpoint(state, path)
@@ -170,6 +199,8 @@ class GraphEvaluatorCore:
         self.evaluated_updates = int(saved.get("evaluated_updates", 0))
         if "cmi_ema" in saved:
             self.cmi_ema = saved["cmi_ema"].numpy()
+        if "reward_ema" in saved:
+            self.reward_ema = saved["reward_ema"].numpy()
         if self.local is not None and "local" in saved:
             self.local.load_state_dict(saved["local"])
         return True

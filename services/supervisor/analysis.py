@@ -21,6 +21,7 @@ from services.policy_learner.config import PolicyLearnerConfig
 from services.supervisor import evaluation
 from services.supervisor import report as reporting
 from services.supervisor import report_local as local_report
+from services.supervisor import report_reward
 from services.supervisor.config import RunConfig
 from services.supervisor.final_graph import add_final_graph, add_final_local_graph, final_reports
 from services.supervisor.wiring import env_kwargs, run_env_spec, service_configs
@@ -65,6 +66,8 @@ def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) ->
         reporting.plot_graphs(report, run_dir / "graph.png")
         reporting.plot_object_graphs(report, run_dir / "object_graph.png")
         reporting.plot_learning_curve(record.history, run_dir / "learning_curve.png")
+        if report.reward_scores is not None:
+            report_reward.plot_abstraction(report, run_dir / "abstraction.png")
     if final is not None:
         add_final_graph(content, final, run_dir)
     reporting.write_summary(run_dir / "summary.json", content)
@@ -132,6 +135,9 @@ def print_summary(content: dict) -> None:
     if "local_graph" in content:
         local = content["local_graph"]
         shown["local_graph"] = {k: local.get(k) for k in ("evaluation", "num_transitions", "roc_auc", "pr_auc", "best_f1")}
+    if "reward_graph" in content:
+        shown["reward_graph"] = {k: content["reward_graph"].get(k) for k in ("learned_parents", "accuracy", "f1")}
+        shown["task_abstraction"] = {k: content["task_abstraction"].get(k) for k in ("kept", "accuracy")}
     if "final_graph" in content:
         final = content["final_graph"]
         shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "accuracy", "f1", "best_threshold_f1",

@@ -29,6 +29,7 @@ from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.checkpoint import load_checkpoint
 from services.supervisor import report as reporting
 from services.supervisor import report_local as local_report
+from services.supervisor.report_reward import plot_abstraction
 from services.supervisor.evaluation import model_from_checkpoint
 from services.supervisor.wiring import run_env_spec, service_configs
 
@@ -73,6 +74,8 @@ def add_final_graph(content: dict[str, Any], final: GraphReport, run_dir: Path) 
                               **reporting.graph_fields(final)}
     reporting.plot_graphs(final, run_dir / "graph.png", "final graph")
     reporting.plot_object_graphs(final, run_dir / "object_graph.png")
+    if final.reward_scores is not None:
+        plot_abstraction(final, run_dir / "abstraction.png", "final graph")
 
 
 def add_final_local_graph(content: dict[str, Any], final: LocalGraphReport, run_dir: Path) -> None:

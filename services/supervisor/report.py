@@ -14,6 +14,7 @@ import numpy as np  # noqa: E402
 from causal.abstraction import Abstraction  # noqa: E402
 from causal.graph_metrics import binary_scores, scored_entries  # noqa: E402
 from proto.messages import GraphReport  # noqa: E402
+from services.supervisor.report_reward import reward_fields  # noqa: E402
 
 SUMMARY_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold", "best_threshold_f1",
                   "best_threshold_accuracy", "best_threshold_precision", "best_threshold_recall")
@@ -63,6 +64,7 @@ def graph_fields(report: GraphReport) -> dict[str, Any]:
     objects = object_scores(report.adjacency, report.true_graph, report.factor_names)
     if objects is not None:
         out["object_level"] = objects
+    out.update(reward_fields(report))  # a method with a reward graph (CBM): reward_graph, task_abstraction, ...
     return out
 
 

@@ -84,3 +84,37 @@ def make_local_report(num_objects: int = 3, version: int = 1, examples: int = 4,
 
 def make_stats(service: str, instance: str = "0", **values: float) -> ServiceStats:
     return ServiceStats(service=service, instance=instance, values=dict(values), timestamp=time.time())
+
+
+def true_reward_parents(num_objects: int) -> np.ndarray:
+    """The reward reads the colours and the action (a Match-like task)."""
+    parents = np.zeros(3 * num_objects + 1, np.uint8)
+    parents[0 : 3 * num_objects : 3] = 1
+    parents[-1] = 1
+    return parents
+
+
+def make_reward_report(num_objects: int = 3, version: int = 1, errors: int = 2, reward_errors: int = 1,
+                       seed: int = 0, kind: str = "cbm") -> GraphReport:
+    """:func:`make_report` with a causal reward model's graph (CBM): the first ``reward_errors`` positions
+    (obj0.x, obj0.y, ...) taken for reward parents, the minimal abstraction and its scores."""
+    from dataclasses import replace
+
+    from causal.abstraction import abstraction_accuracy, minimal_abstraction
+    from causal.graph_metrics import binary_scores
+
+    report = make_report(num_objects, version, errors, seed, kind)
+    truth = true_reward_parents(num_objects)
+    scores = np.where(truth == 1, 0.4, 0.001).astype(np.float32)
+    wrong = [k for k in range(3 * num_objects) if k % 3][:reward_errors]
+    scores[wrong] = 0.05
+    parents = (scores >= 0.01).astype(np.uint8)
+    abstraction = minimal_abstraction(report.adjacency, parents)
+    n = 3 * num_objects
+    true_kept = minimal_abstraction(report.true_graph, truth).kept
+    metrics = {**report.metrics, **{f"reward_{k}": v for k, v in binary_scores(parents, truth, np.ones(n + 1, bool)).items()},
+               "abstraction_accuracy": abstraction_accuracy(abstraction.kept, true_kept, n),
+               "abstraction_accuracy_true_reward": 1.0}
+    return replace(report, controllable=abstraction.controllable, action_relevant=abstraction.action_relevant,
+                   action_irrelevant=abstraction.action_irrelevant, metrics=metrics, reward_scores=scores,
+                   reward_parents=parents, reward_threshold=0.01, true_reward_parents=truth)

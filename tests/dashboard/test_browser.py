@@ -4,7 +4,9 @@ Loads the page, waits for the first report to render, publishes a new one and wa
 change without a reload, checks the heat maps, classes, scores and the hover tooltip, and leaves a
 screenshot in test-artifacts/dashboard.png. Then the local-graph panel: shown with its scores and an
 example transition's matrices for runs with local-graph reports (with or without a global graph),
-hidden for runs without; screenshot in test-artifacts/dashboard-local.png.
+hidden for runs without; screenshot in test-artifacts/dashboard-local.png. Then a run with a reward
+graph (CBM): the reward row under the heat maps, its scores and the minimal abstraction's classes;
+screenshot in test-artifacts/dashboard-reward.png.
 """
 from __future__ import annotations
 
@@ -27,12 +29,13 @@ from proto.codec import encode
 from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from tests.dashboard.browser import CHROMIUM, Browser
-from tests.dashboard.reports import make_local_report, make_report, make_stats
+from tests.dashboard.reports import make_local_report, make_report, make_reward_report, make_stats
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 REPO = Path(__file__).resolve().parents[2]
 SCREENSHOT = REPO / "test-artifacts" / "dashboard.png"
 LOCAL_SCREENSHOT = REPO / "test-artifacts" / "dashboard-local.png"
+REWARD_SCREENSHOT = REPO / "test-artifacts" / "dashboard-reward.png"
 RUN = "chemical-demo"
 
 
@@ -254,3 +257,47 @@ def test_local_graph_panel_shows_for_runs_with_local_reports_only(stack) -> None
         assert visible(browser, "kpis") and visible(browser, "heatmap-learned")
         assert browser.exceptions == []
     assert LOCAL_SCREENSHOT.stat().st_size > 30_000
+
+
+def test_a_reward_graph_shows_as_a_reward_row_with_the_minimal_abstraction(stack) -> None:
+    publisher, latest, base = stack
+    latest.set(encode(make_report(3, version=2, errors=2)))  # RUN: CDL, no reward graph
+    cbm = publisher.serve_latest(topics.graph("cbm-demo", "cbm"))
+    report = make_reward_report(3, version=3, errors=1, reward_errors=2)
+    cbm.set(encode(report))
+    try:
+        wait_for(lambda: fetch_json(f"{base}/api/runs/cbm-demo")["graph"], 10, "the CBM report")
+        with Browser(width=1440, height=1000) as browser:
+            browser.navigate(f"{base}/?run=cbm-demo")
+            browser.wait_for("document.body.dataset.weightsVersion === '3'", 10, "the CBM run")
+            for heatmap in ("learned", "truth", "compare"):
+                assert browser.evaluate(f"document.querySelectorAll('#heatmap-{heatmap} rect.cell').length") == 10 * 10
+            assert text(browser, "#heatmap-learned text.reward-label") == "reward"
+            compare = browser.evaluate("[...document.querySelectorAll('#heatmap-compare rect.cell[data-i=\\'9\\']')]"
+                                       ".map(r => r.getAttribute('class').replace('cell outcome-', ''))")
+            assert compare == ["tp", "fp", "fp", "tp", "tn", "tn", "tp", "tn", "tn", "tp"]
+            assert text(browser, "#reward-counts") == "reward row: TP 4 · FP 2 · FN 0 · TN 4"
+            assert visible(browser, "kpi-reward") and visible(browser, "kpi-abstraction")
+            assert text(browser, "#reward-f1") == f"{report.metrics['reward_f1']:.3f}"
+            assert text(browser, "#abstraction-accuracy") == f"{report.metrics['abstraction_accuracy']:.3f}"
+            assert "Theorem 4.1" in text(browser, "#classes-sub")
+            chips = browser.evaluate("Object.fromEntries([...document.querySelectorAll('#classes .class-block')].map("
+                                     "b => [b.dataset.class, [...b.querySelectorAll('.chip')].map(c => c.textContent)]))")
+            assert set(chips) == {"reward_parents", "reward_ancestors", "dropped"}
+            assert {"obj0.x", "obj0.y"} <= set(chips["reward_parents"])
+            assert "reward parents' F1" in text(browser, "#chart-legend")
+            browser.fit_to_content()
+            browser.hover("#heatmap-learned rect.cell[data-i='9'][data-j='1']")  # obj0.x -> reward, a false positive
+            tip = browser.wait_for("!document.getElementById('tooltip').hidden"
+                                   " && document.getElementById('tooltip').innerText", 5, "the tooltip")
+            assert "obj0.x → reward" in tip and "reward CMI" in tip and "0.0100" in tip and "false positive" in tip
+            browser.screenshot(REWARD_SCREENSHOT)
+            select_run(browser, RUN)
+            browser.wait_for("document.body.dataset.weightsVersion === '2'", 10, "the CDL run")
+            assert not visible(browser, "kpi-reward") and not visible(browser, "reward-counts")
+            assert browser.evaluate("document.querySelectorAll('#heatmap-learned rect.cell').length") == 9 * 10
+            assert "Definitions 3.1" in text(browser, "#classes-sub")
+            assert browser.exceptions == []
+    finally:
+        cbm.close()
+    assert REWARD_SCREENSHOT.stat().st_size > 30_000

@@ -74,7 +74,7 @@ def test_history_is_bounded_and_thinned_so_it_still_spans_the_run() -> None:
     assert steps[0] == 100 and steps[-1] == 2500 and steps == sorted(steps)
     assert set(history[0]) == {"time", "env_steps", "updates", "f1", "accuracy", "precision", "recall", "roc_auc",
                                "best_threshold_f1", "identifiable_f1", "with_self_best_threshold_f1",
-                               "with_self_accuracy"}
+                               "with_self_accuracy", "reward_f1", "abstraction_accuracy"}
     assert history[0]["precision"] is None and history[0]["f1"] == 0.5
 
 
@@ -133,3 +133,31 @@ def test_snapshots_are_strict_json() -> None:
 def test_bad_bounds_are_refused() -> None:
     with pytest.raises(ValueError):
         DashboardState(history_points=1)
+
+
+def test_a_reward_graph_adds_a_reward_row_and_the_minimal_abstraction() -> None:
+    from tests.dashboard.reports import make_reward_report
+
+    report = make_reward_report(num_objects=3, reward_errors=2)
+    state = DashboardState()
+    state.add_report("r", report, now=1.0)
+    snapshot = state.snapshot("r", now=1.0)
+    graph = snapshot["graph"]
+    reward = graph["reward"]
+    assert reward["row_name"] == "reward" and len(reward["cells"]) == 10 and reward["threshold"] == 0.01
+    assert [c["outcome"] for c in reward["cells"]][:3] == ["tp", "fp", "fp"]  # obj0: colour, then x and y
+    assert reward["confusion"] == {"tp": 4, "fp": 2, "fn": 0, "tn": 4}
+    assert all(c["threshold"] == 0.01 for c in reward["cells"])
+    assert len(graph["cells"]) == 9 and graph["abstraction"] == "minimal"
+    assert [c["key"] for c in graph["classes"]] == ["reward_parents", "reward_ancestors", "dropped"]
+    named = {c["key"]: [f["name"] for f in c["factors"]] for c in graph["classes"]}
+    kept = set(report.controllable + report.action_relevant)
+    assert set(named["reward_parents"]) | set(named["reward_ancestors"]) == {report.factor_names[j] for j in kept}
+    assert "obj0.x" in named["reward_parents"]
+    assert snapshot["history"][-1]["reward_f1"] == pytest.approx(report.metrics["reward_f1"], rel=1e-4)
+    assert snapshot["history"][-1]["abstraction_accuracy"] is not None
+    json.dumps(snapshot, allow_nan=False)
+    state.add_report("c", make_report(num_objects=3), now=2.0)
+    cdl = state.snapshot("c", now=2.0)["graph"]
+    assert cdl["reward"] is None and cdl["abstraction"] == "cdl"
+    assert state.snapshot("c", now=2.0)["history"][-1]["reward_f1"] is None

@@ -60,9 +60,29 @@ function renderKpis(graph, previous) {
     delta.textContent = '';
   }
   ['tp', 'fp', 'fn', 'tn'].forEach((o) => setText(`count-${o}`, graph.confusion ? String(graph.confusion[o]) : ''));
+  renderRewardKpis(graph);
+}
+
+// A method with a reward graph (CBM): its reward parents' F1 and the minimal abstraction's accuracy.
+function renderRewardKpis(graph) {
+  const m = graph.metrics;
+  const reward = Boolean(graph.reward) && m.reward_f1 != null;
+  $('kpi-reward').hidden = !reward;
+  setText('reward-f1', reward ? fmt.ratio(m.reward_f1) : '–');
+  setText('reward-note', reward ? `accuracy ${fmt.ratio(m.reward_accuracy)}` : '');
+  const abstraction = Boolean(graph.reward) && m.abstraction_accuracy != null;
+  $('kpi-abstraction').hidden = !abstraction;
+  setText('abstraction-accuracy', abstraction ? fmt.ratio(m.abstraction_accuracy) : '–');
+  setText('abstraction-note', abstraction ? `true reward parents: ${fmt.ratio(m.abstraction_accuracy_true_reward)}` : '');
+  const counts = graph.reward && graph.reward.confusion;
+  $('reward-counts').hidden = !counts;
+  setText('reward-counts', counts ? `reward row: TP ${counts.tp} · FP ${counts.fp} · FN ${counts.fn} · TN ${counts.tn}` : '');
 }
 
 function renderClasses(graph) {
+  setText('classes-sub', graph.abstraction === 'minimal'
+    ? "minimal task abstraction: the reward's parents and their ancestors (Theorem 4.1)"
+    : 'from the learned graph (Definitions 3.1–3.3)');
   $('classes').replaceChildren(...graph.classes.map((cls) => {
     const chips = cls.factors.map((f) => {
       const chip = html('span', { className: 'chip', text: f.name, data: { index: f.index } });

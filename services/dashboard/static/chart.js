@@ -10,6 +10,8 @@ const SERIES = [
   { key: 'roc_auc', label: 'ROC AUC' },
   { key: 'identifiable_f1', label: 'identifiable F1', dashed: true, optional: 'differs' },
   { key: 'with_self_best_threshold_f1', label: 'best F1, Table 3.1 scoring', dotted: true, optional: 'present' },
+  { key: 'reward_f1', label: "reward parents' F1", optional: 'present' },
+  { key: 'abstraction_accuracy', label: 'abstraction accuracy', dashed: true, optional: 'present' },
 ];
 
 export const LOCAL_SERIES = [
@@ -22,7 +24,8 @@ export const LOCAL_SERIES = [
 
 // Optional series are drawn only where they tell something new: identifiable F1 where it differs
 // from F1 (environments with constant factors, i.e. manipulation); the Table 3.1-scored F1 (every
-// entry, self-edges counted found) where the evaluator reports it (older runs do not).
+// entry, self-edges counted found) where the evaluator reports it (older runs do not); the reward
+// parents' F1 and the minimal abstraction's accuracy where the method has a reward graph (CBM).
 function activeSeries(points, all) {
   const shows = { differs: (p, key) => p[key] != null && p[key] !== p.f1, present: (p, key) => p[key] != null };
   return all.filter(({ key, optional }) => !optional || points.some((p) => shows[optional](p, key)));

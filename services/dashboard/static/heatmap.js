@@ -10,6 +10,12 @@ const GLOBAL_LABELS = { score: 'CMI', unit: 'nats', learned: 'learned' };
 
 const labelsOf = (graph) => ({ ...GLOBAL_LABELS, ...graph.labels });
 
+// A graph with a reward graph (CBM) has one more effect row under the factors: the reward, its cells
+// scored against the true reward parents with their own threshold.
+const rowNames = (graph) => (graph.reward ? [...graph.factor_names, graph.reward.row_name] : graph.factor_names);
+const cellRows = (graph) => (graph.reward ? [...graph.cells, graph.reward.cells] : graph.cells);
+const isRewardRow = (graph, i) => Boolean(graph.reward) && i === graph.factor_names.length;
+
 // CMI on a log scale: a decade below the threshold is the lightest blue.
 function cmiDomain(graph) {
   const lo = Math.max(graph.threshold, 1e-4) / 10;
@@ -44,7 +50,7 @@ class Heatmap {
 
   render(graph) {
     const width = this.svg.parentElement.clientWidth;
-    const key = `${width}|${graph.factor_names.join(',')}|${graph.cause_names.length}`;
+    const key = `${width}|${rowNames(graph).join(',')}|${graph.cause_names.length}`;
     if (key !== this.key) this.build(graph, width);
     this.key = key;
     this.paint(graph);
@@ -52,7 +58,7 @@ class Heatmap {
 
   build(graph, width) {
     this.svg.replaceChildren();
-    const rows = graph.factor_names;
+    const rows = rowNames(graph);
     const cols = graph.cause_names;
     const font = cols.length > 20 ? 10 : 11;
     this.svg.style.setProperty('--label-size', `${font}px`);
@@ -66,6 +72,11 @@ class Heatmap {
     this.svg.setAttribute('width', x0 + cell * cols.length + 2);
     this.svg.setAttribute('height', y0 + cell * rows.length + 2);
     rowLabels.forEach((t, i) => { t.setAttribute('x', x0 - 6); t.setAttribute('y', y0 + (i + 0.5) * cell); });
+    if (graph.reward) {
+      rowLabels[rows.length - 1].classList.add('reward-label');
+      svg('line', { class: 'reward-separator', x1: x0, x2: x0 + cell * cols.length,
+        y1: y0 + (rows.length - 1) * cell, y2: y0 + (rows.length - 1) * cell }, this.svg);
+    }
     colLabels.forEach((t, j) => {
       t.setAttribute('transform', `translate(${x0 + (j + 0.5) * cell},${y0 - 6}) rotate(-90)`);
     });
@@ -89,7 +100,7 @@ class Heatmap {
 
   paint(graph) {
     const domain = cmiDomain(graph);
-    graph.cells.forEach((row, i) => row.forEach((c, j) => {
+    cellRows(graph).forEach((row, i) => row.forEach((c, j) => {
       const rect = this.cells[i][j];
       if (this.mode === 'learned') {
         const colour = blue(cmiPosition(c.cmi, domain));
@@ -140,16 +151,18 @@ export class GraphViews {
   hover(i, j, event) {
     const graph = this.graph;
     if (!graph) return;
-    const c = graph.cells[i][j];
+    const c = cellRows(graph)[i][j];
     const labels = labelsOf(graph);
+    const reward = isRewardRow(graph, i);
     this.maps.forEach((m) => m.highlight(i, j));
     const yesNo = (v) => (v == null ? 'unknown' : v ? 'edge' : 'no edge');
     const unit = labels.unit ? ` ${labels.unit}` : '';
-    tooltip.show(`${graph.cause_names[j]} → ${graph.factor_names[i]}`, [
+    const effect = rowNames(graph)[i];
+    tooltip.show(`${graph.cause_names[j]} → ${effect}`, [
       ['cause (t)', graph.cause_names[j]],
-      ['effect (t+1)', graph.factor_names[i]],
-      [labels.score, `${fmt.cmi(c.cmi)}${unit}`],
-      ['threshold ε', `${fmt.cmi(graph.threshold)}${unit}`],
+      reward ? ['effect', 'reward r_t (causal reward model)'] : ['effect (t+1)', effect],
+      [reward ? 'reward CMI' : labels.score, `${fmt.cmi(c.cmi)}${unit}`],
+      ['threshold ε', `${fmt.cmi(c.threshold ?? graph.threshold)}${unit}`],
       [labels.learned, yesNo(c.learned)],
       ['truth', yesNo(c.truth)],
     ], c.outcome, event.clientX, event.clientY);
