@@ -170,7 +170,8 @@ def test_services_on_two_hosts_ride_out_a_partition(hosts: TwoHosts) -> None:
         run_dir = Path(tmp)
         for host, index in ((hosts.a, "1"), (hosts.b, "2")):
             host.start([PYTHON, "-m", "services.env_worker"], cwd=REPO, log=logs / f"env-worker-{index}.log",
-                       env=_service_env(host, run_dir / host.namespace, CAUSEWAY_WORKER_INDEX=index))
+                       env=_service_env(host, run_dir / host.namespace, CAUSEWAY_WORKER_INDEX=index,
+                                        CAUSEWAY_INSTANCE=index))
         for service in ("dynamics_learner", "graph_evaluator"):
             hosts.b.start([PYTHON, "-m", f"services.{service}"], cwd=REPO, log=logs / f"{service}.log",
                           env=_service_env(hosts.b, run_dir / hosts.b.namespace))
@@ -180,6 +181,7 @@ def test_services_on_two_hosts_ride_out_a_partition(hosts: TwoHosts) -> None:
         assert _value(before, "env-worker", "env_steps") > 0 and _value(before, "dynamics-learner", "updates") > 0
         partitioned_at = time.time()
         hosts.partition()
+        time.sleep(3)
         during = _status(hosts.b)
         time.sleep(max(0.0, 10 - (time.time() - partitioned_at)))
         hosts.heal()
@@ -190,14 +192,21 @@ def test_services_on_two_hosts_ride_out_a_partition(hosts: TwoHosts) -> None:
     workers = counted["workers"]
     across, within = workers["w1"], workers["w2"]
     arrivals = [counted["started"] + t for t in across["arrivals"]]
+    before_partition = {name: {**w, "arrivals": [t for t in w["arrivals"] if counted["started"] + t < partitioned_at]}
+                        for name, w in workers.items()}
     figures = {
-        "transitions_per_second": {"across_the_link_w1": round(_steps_per_second(across)),
-                                   "within_host_w2": round(_steps_per_second(within))},
+        "transitions_per_second_before_the_partition": {
+            "across_the_link_w1": round(_steps_per_second(before_partition["w1"])),
+            "within_host_w2": round(_steps_per_second(before_partition["w2"]))},
         "lost_batches_w1": across["lost"], "lost_batches_w2": within["lost"],
         "w1_batches_after_heal": len([t for t in arrivals if t > healed_at]),
-        "env_workers_seen_on_b": {"before": len([r for r in before["services"] if r["service"] == "env-worker"]),
+        "longest_stall_w1_s": round(max(b - a for a, b in zip(arrivals, arrivals[1:])), 2),
+        "env_workers_seen_on_b": {"before": len([r for r in before["services"] if r["service"] == "env-worker"
+                                                 and r["token"]]),
                                   "during": len([r for r in during["services"] if r["service"] == "env-worker"
                                                  and r["token"]])},
+        "env_workers_seen_on_b_after_heal": len([r for r in after["services"] if r["service"] == "env-worker"
+                                                 and r["token"]]),
         "learner_updates": {"before": _value(before, "dynamics-learner", "updates"),
                             "after_heal": _value(after, "dynamics-learner", "updates")},
         "learner_env_steps": {"before": _value(before, "dynamics-learner", "env_steps"),
@@ -205,5 +214,6 @@ def test_services_on_two_hosts_ride_out_a_partition(hosts: TwoHosts) -> None:
     }
     _record("ten_second_partition_services", figures)
     assert figures["w1_batches_after_heal"] > 0, figures
+    assert figures["env_workers_seen_on_b"]["before"] == 2 and figures["env_workers_seen_on_b_after_heal"] == 2, figures
     assert figures["learner_updates"]["after_heal"] > figures["learner_updates"]["before"], figures
     assert _value(after, "env-worker", "env_steps") > _value(before, "env-worker", "env_steps"), figures
