@@ -185,6 +185,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--num-objects", type=int, default=3)
     p.add_argument("--graph", default="full")
     p.add_argument("--distractors", default="5,5")
+    p.add_argument("--task", default="match", help="match (every object) or match-first (object 0 only)")
     p.add_argument("--steps", type=int, default=20_000, help="random-policy transitions per seed")
     p.add_argument("--updates", type=int, default=5_000)
     p.add_argument("--parents-every", type=int, default=500)
@@ -197,7 +198,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
-    env_kwargs = dict(graph=args.graph, num_objects=args.num_objects, distractors=args.distractors)
+    env_kwargs = dict(graph=args.graph, num_objects=args.num_objects, distractors=args.distractors, task=args.task)
     rows: list[dict[str, Any]] = []
     for seed in args.seeds:
         spec, data = collect(env_kwargs, args.steps, seed)
@@ -213,7 +214,8 @@ def main(argv: list[str] | None = None) -> None:
                                                                   "factor_names": spec.factor_names,
                                                                   "rows": rows}, indent=1))
         plot_abstractions(spec, results, args.out / f"cbm_abstractions_s{seed}.png",
-                          f"chemical-distractors {args.num_objects} objects, distractors {args.distractors}, seed {seed}")
+                          f"chemical-distractors {args.task}, {args.num_objects} objects, distractors {args.distractors}, "
+                          f"seed {seed}")
     print(table(rows))
 
 

@@ -9,6 +9,11 @@ and the reward's parents at t: the parents of every colour and goal colour at t+
 So the true minimal task abstraction (Theorem 4.1) keeps the colours and the goals, and drops the
 positions and all distractors; CDL's task-independent abstraction keeps the colours and the
 controllable distractors (descendants of the action) and drops the goals.
+
+Task ``match-first`` rewards matching object 0 only (the fraction is over that one object): its reward
+reads ``obj0.color`` and ``obj0.goal_color``, so on the ``full`` graph (where object 0 is a root) the
+minimal abstraction is those two factors, while every colour stays controllable: the situation of
+Fig. 4.5, where CDL keeps the movable blocks a task does not need and CBM drops them.
 """
 from __future__ import annotations
 
@@ -24,16 +29,24 @@ from envs.distractors import Distractors, parse_distractors
 from envs.task_truth import parents_through_step
 from proto.messages import EnvSpec
 
+TASKS = ("match", "match-first")
+"""``match``: every object at its goal colour (Chemical Match's reward); ``match-first``: object 0 only."""
+
 
 class ChemicalDistractorsEnv(ChemicalMatchEnv):
     """Observation ``[4N + C + U]``: Chemical Match's ``[4N]``, then ``cd.0 .. cd.{C-1}`` and
     ``ud.0 .. ud.{U-1}``. ``distractors`` is ``"C,U"`` (default 20 of each); ``distractor_seed``
-    fixes the projection. Every :class:`ChemicalMatchEnv` option passes through."""
+    fixes the projection; ``task`` is one of :data:`TASKS`. Every :class:`ChemicalMatchEnv` option
+    passes through."""
 
-    def __init__(self, *, distractors: str = "20,20", distractor_seed: int = 0, **kwargs: Any) -> None:
+    def __init__(self, *, distractors: str = "20,20", distractor_seed: int = 0, task: str = "match",
+                 **kwargs: Any) -> None:
+        if task not in TASKS:
+            raise ValueError(f"task must be one of {TASKS}, got {task!r}")
         self.num_controllable, self.num_uncontrollable = parse_distractors(distractors)
-        self.distractor_seed = distractor_seed
+        self.distractor_seed, self.task = distractor_seed, task
         super().__init__(**kwargs)
+        self.task_objects = tuple(range(self.num_objects)) if task == "match" else (0,)
         self.distractors = Distractors(self.num_controllable, self.num_uncontrollable, "categorical",
                                        int(self.action_space.n), distractor_seed)
         self._match_width = 4 * self.num_objects
@@ -51,9 +64,11 @@ class ChemicalDistractorsEnv(ChemicalMatchEnv):
 
     @property
     def reward_parents(self) -> np.ndarray:
-        """uint8 ``[d + 1]``: the true parents at t of the Match reward (colours, goals, the action)."""
+        """uint8 ``[d + 1]``: the true parents at t of the task's reward: of the colours and goal colours
+        it reads at t+1 (Match: every colour, every goal, the action)."""
         n = self.num_objects
-        return parents_through_step(self._global_graph, [*range(0, 3 * n, 3), *range(3 * n, 4 * n)])
+        read = [3 * k for k in self.task_objects] + [3 * n + k for k in self.task_objects]
+        return parents_through_step(self._global_graph, read)
 
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -69,8 +84,11 @@ class ChemicalDistractorsEnv(ChemicalMatchEnv):
         return super().step(action)
 
     def match_fraction(self, obs: np.ndarray) -> np.floating | np.ndarray:
-        """Chemical Match's reward on the first ``4N`` columns of ``obs``."""
-        return super().match_fraction(np.asarray(obs)[..., : self._match_width])
+        """The task's reward: the fraction of its objects at their goal colour, from the first ``4N``
+        columns of ``obs``."""
+        obs, n = np.asarray(obs), self.num_objects
+        objects = list(self.task_objects)
+        return np.mean(obs[..., 0 : 3 * n : 3][..., objects] == obs[..., 3 * n : 4 * n][..., objects], axis=-1)
 
     def sample_next_states(self, states: np.ndarray, action: int) -> np.ndarray:
         """Chemical Match's batched simulator, with the distractors' new values appended."""
@@ -104,7 +122,7 @@ class ChemicalDistractorsEnv(ChemicalMatchEnv):
     def config(self) -> dict[str, Any]:
         """Chemical Match's configuration plus the distractor counts and seed."""
         return {**super().config(), "distractors": f"{self.num_controllable},{self.num_uncontrollable}",
-                "distractor_seed": self.distractor_seed}
+                "distractor_seed": self.distractor_seed, "task": self.task}
 
     def _make_observation_space(self) -> gym.spaces.Box:
         match = super()._make_observation_space()

@@ -121,3 +121,23 @@ def test_ground_truth_matches_interventions_on_the_simulator() -> None:
     np.testing.assert_array_equal(found[:, 12:17], spec.global_graph[:, 12:17])
     assert (reward_found <= spec.reward_parents).all() and not reward_found[12:17].any()
     assert reward_found[:12].any() and reward_found[-1]
+
+
+def test_match_first_rewards_object_0_only_and_its_minimal_abstraction_is_two_factors() -> None:
+    from causal.abstraction import cdl_abstraction, minimal_abstraction
+
+    env = ChemicalDistractorsEnv(task="match-first", **SMALL)
+    env.reset(seed=0)
+    obs = env._observation()  # noqa: SLF001
+    obs[:12] = [1, 0, 0, 2, 0, 0, 3, 0, 0, 1, 0, 0]  # obj0 matches its goal, obj1 and obj2 do not
+    assert env.match_fraction(obs) == 1.0
+    obs[9] = 4
+    assert env.match_fraction(obs) == 0.0
+    spec = env.env_spec()
+    assert [spec.factor_names[i] for i in np.flatnonzero(spec.reward_parents[:-1])] == ["obj0.color", "obj0.goal_color"]
+    kept = minimal_abstraction(spec.global_graph, spec.reward_parents).kept
+    assert [spec.factor_names[j] for j in kept] == ["obj0.color", "obj0.goal_color"]
+    assert len(cdl_abstraction(spec.global_graph).kept) == 3 + 3  # every colour and controllable distractor
+    assert env_entry("chemical-distractors").kwargs(EnvOptions(task="match-first"))["task"] == "match-first"
+    with pytest.raises(ValueError, match="task must be one of"):
+        ChemicalDistractorsEnv(task="stack", **SMALL)
