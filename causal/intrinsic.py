@@ -6,10 +6,16 @@ Rewards live in a small registry (:data:`REWARDS`) so new ones (ELDEN's, an ense
 
 * ``preddiff`` (CDL, eq. 3.4): ``r = tanh(eta * sum_j log p(s'_j | s, a) / p(s'_j | PA(j)))``, the
   dense predictor against the causal one: large where the causal model misses something.
-* ``curiosity``: prediction error, ``eta * sum_j -log p(s'_j | PA(j))`` (NLL of the causal predictor).
+* ``curiosity`` (dynamics curiosity, Burda et al. 2019): prediction error, ``eta * sum_j -log p(s'_j)``
+  of the run's dynamics model: CDL's causal predictor (``p(s'_j | PA(j))``), or any model that
+  gives its own :meth:`PredictionErrorModel.prediction_nll` (ELDEN: the ensemble's mean NLL).
 * ``disagreement``: ``eta * sum_d Var_k f_k(s, a)_d`` across the K members of a
   :class:`BootstrapEnsemble` of forward models, each trained on its own bootstrap resample
   (Poisson(1) weight per member and transition, fixed when the transition arrives).
+* ``elden`` (ELDEN, Algorithm 6): ``eta * mean over edges of Var_k G_k(s, a)``, the variance across
+  the ensemble members of each edge of their local dependency graphs (eq. 5.1), zero for outputs
+  on whose next value the members agree; zero until the weights have seen the model's warm-up of
+  env steps (:meth:`IntrinsicReward.warmup_env_steps`).
 
 The first two share one feature computation: the dense and the causal aggregate are two masks on it.
 A reward's ``source`` says which model it reads: ``dynamics`` (the run's method's published weights;
@@ -19,7 +25,7 @@ intrinsic-reward service trains itself, whatever the method).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, ClassVar, Protocol
+from typing import Callable, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -28,6 +34,8 @@ from torch import nn
 
 from causal.cdl import CDLModel
 from causal.abstraction import with_self_edges
+from causal.elden import ELDENModel
+from causal.elden_graphs import graph_variance
 from causal.factored import FactorCodec, FactorLayout
 
 
@@ -37,8 +45,24 @@ class IntrinsicReward(Protocol):
     name: ClassVar[str]
     source: ClassVar[str]
 
-    def __call__(self, model: CDLModel | BootstrapEnsemble, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+    def __call__(self, model: nn.Module, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
                  next_state: torch.Tensor) -> torch.Tensor: ...
+
+    def warmup_env_steps(self, model: nn.Module) -> int:
+        """Env steps the weights must have seen before this reward is non-zero (0: none)."""
+
+
+class _NoWarmup:
+    def warmup_env_steps(self, model: nn.Module) -> int:
+        return 0
+
+
+@runtime_checkable
+class PredictionErrorModel(Protocol):
+    """A dynamics model that scores its own prediction error (what ``curiosity`` reads)."""
+
+    def prediction_nll(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
+        """``-log p(s' | s, a)`` summed over factors, ``[B]`` nats."""
 
 
 def causal_parents(adjacency: np.ndarray) -> torch.Tensor:
@@ -60,7 +84,7 @@ def dense_and_causal_nll(model: CDLModel, parents: np.ndarray, state: torch.Tens
 
 
 @dataclass(frozen=True)
-class PredDiff:
+class PredDiff(_NoWarmup):
     """CDL's prediction difference (eq. 3.4), squashed by tanh into (-1, 1)."""
 
     name: ClassVar[str] = "preddiff"
@@ -74,17 +98,23 @@ class PredDiff:
 
 
 @dataclass(frozen=True)
-class PredictionError:
-    """Curiosity as the causal predictor's NLL of the observed next state, summed over factors."""
+class PredictionError(_NoWarmup):
+    """Dynamics curiosity: the model's NLL of the observed next state, summed over factors (CDL: the
+    causal predictor's; a :class:`PredictionErrorModel`: its own)."""
 
     name: ClassVar[str] = "curiosity"
     source: ClassVar[str] = "dynamics"
     eta: float = 1.0
 
-    def __call__(self, model: CDLModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
-                 next_state: torch.Tensor) -> torch.Tensor:
-        _, causal = dense_and_causal_nll(model, parents, state, action, next_state)
-        return self.eta * causal.sum(dim=0)
+    def __call__(self, model: CDLModel | PredictionErrorModel, parents: np.ndarray, state: torch.Tensor,
+                 action: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
+        if isinstance(model, CDLModel):
+            _, causal = dense_and_causal_nll(model, parents, state, action, next_state)
+            return self.eta * causal.sum(dim=0)
+        if not isinstance(model, PredictionErrorModel):
+            raise TypeError(f"{type(model).__name__} gives no prediction error")
+        with torch.no_grad():
+            return self.eta * model.prediction_nll(state, action, next_state)
 
 
 class BootstrapEnsemble(nn.Module):
@@ -147,7 +177,7 @@ class BootstrapEnsemble(nn.Module):
 
 
 @dataclass(frozen=True)
-class Disagreement:
+class Disagreement(_NoWarmup):
     """Ensemble disagreement: the variance of K bootstrap forward models' predictions, summed."""
 
     name: ClassVar[str] = "disagreement"
@@ -159,8 +189,26 @@ class Disagreement:
         return self.eta * model.disagreement(state, action)
 
 
+@dataclass(frozen=True)
+class LocalGraphVariance:
+    """ELDEN's reward (Algorithm 6, lines 4-5): the variance of the members' local graphs, times beta."""
+
+    name: ClassVar[str] = "elden"
+    source: ClassVar[str] = "dynamics"
+    eta: float = 1.0
+    """beta of Algorithm 6 (reference: 1)."""
+
+    def __call__(self, model: ELDENModel, parents: np.ndarray, state: torch.Tensor, action: torch.Tensor,
+                 next_state: torch.Tensor) -> torch.Tensor:
+        return self.eta * graph_variance(model, state, action, next_state)
+
+    def warmup_env_steps(self, model: ELDENModel) -> int:
+        return model.cfg.reward_warmup_env_steps
+
+
 REWARDS: dict[str, Callable[..., IntrinsicReward]] = {
-    PredDiff.name: PredDiff, PredictionError.name: PredictionError, Disagreement.name: Disagreement}
+    PredDiff.name: PredDiff, PredictionError.name: PredictionError, Disagreement.name: Disagreement,
+    LocalGraphVariance.name: LocalGraphVariance}
 """Intrinsic rewards by name; each factory takes ``eta``."""
 
 
@@ -176,7 +224,7 @@ def make_reward(name: str, eta: float = 1.0) -> IntrinsicReward:
         raise KeyError(f"unknown intrinsic reward {name!r}; known: {sorted(REWARDS)}") from None
 
 
-def score(reward: IntrinsicReward, model: CDLModel | BootstrapEnsemble, parents: np.ndarray, state: np.ndarray,
+def score(reward: IntrinsicReward, model: nn.Module, parents: np.ndarray, state: np.ndarray,
           action: np.ndarray, next_state: np.ndarray, chunk: int = 1024) -> np.ndarray:
     """``reward`` on numpy transitions, in chunks of ``chunk`` rows; float32 ``[B]``."""
     out = []

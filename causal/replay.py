@@ -100,3 +100,97 @@ class LabelledReplay(ReplayBuffer):
             graphs = np.roll(graphs, -cursor, axis=0)
         super().load_state_dict(saved)
         self.graphs[: self.size] = graphs[: self.size]
+
+
+class SumTree:
+    """Priorities of ``capacity`` rows and their partial sums in a complete binary tree (an array:
+    node ``k`` has children ``2k`` and ``2k + 1``, the leaves start at :attr:`leaves`). Setting and
+    finding are vectorised over rows; the loops run over the tree's levels."""
+
+    def __init__(self, capacity: int) -> None:
+        self.leaves = 1 << max(capacity - 1, 1).bit_length()
+        self.tree = np.zeros(2 * self.leaves, np.float64)
+
+    @property
+    def total(self) -> float:
+        return float(self.tree[1])
+
+    def get(self, index: np.ndarray) -> np.ndarray:
+        return self.tree[np.asarray(index) + self.leaves]
+
+    def set(self, index: np.ndarray, priorities: np.ndarray) -> None:
+        node = np.asarray(index, np.int64) + self.leaves
+        self.tree[node] = priorities
+        node = np.unique(node // 2)
+        while node.size and node[0] >= 1:
+            self.tree[node] = self.tree[2 * node] + self.tree[2 * node + 1]
+            node = np.unique(node[node > 1] // 2)
+
+    def find(self, mass: np.ndarray) -> np.ndarray:
+        """The row under each cumulative ``mass`` in [0, total): row k is found with probability
+        priority_k / total when ``mass`` is uniform."""
+        node = np.ones(len(mass), np.int64)
+        mass = np.asarray(mass, np.float64).copy()
+        while node.size and node[0] < self.leaves:
+            left = self.tree[2 * node]
+            right = mass >= left
+            mass = np.where(right, mass - left, mass)
+            node = 2 * node + right
+        return node - self.leaves
+
+
+class PrioritisedReplay(ReplayBuffer):
+    """A replay ring sampled in proportion to per-row priorities (prioritised experience replay,
+    Schaul et al. 2016, as chapter 5 uses it for dynamics learning): a new row gets the largest
+    priority given so far, the trainer's reports replace it (:meth:`update_priorities`). Sampling is
+    stratified: one row from each of ``batch`` equal slices of the total priority. No importance
+    weights: the dynamics model is meant to learn rare transitions faster, not to stay unbiased."""
+
+    def __init__(self, capacity: int, state_dim: int, action_dim: int, seed: int = 0) -> None:
+        super().__init__(capacity, state_dim, action_dim, seed)
+        self.priorities = SumTree(capacity)
+        self.max_priority = 1.0
+
+    def add(self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray,
+            reward: np.ndarray | None = None) -> None:
+        index = (self.cursor + np.arange(min(len(state), self.capacity))) % self.capacity
+        super().add(state, action, next_state, reward)
+        self.priorities.set(index, np.full(len(index), self.max_priority))
+
+    def sample_indexed(self, batch: int, with_reward: bool = False) -> tuple[np.ndarray, tuple[torch.Tensor, ...]]:
+        """``batch`` rows drawn in proportion to their priorities, with their row indices."""
+        total = self.priorities.total
+        mass = (np.arange(batch) + self.rng.random(batch)) * (total / batch)
+        index = np.minimum(self.priorities.find(np.minimum(mass, np.nextafter(total, 0))), self.size - 1)
+        columns = (self.state, self.action, self.next_state) + ((self.reward,) if with_reward else ())
+        return index, tuple(torch.from_numpy(a[index]) for a in columns)
+
+    def sample(self, batch: int, with_reward: bool = False) -> tuple[torch.Tensor, ...]:
+        return self.sample_indexed(batch, with_reward)[1]
+
+    def update_priorities(self, index: np.ndarray, priorities: np.ndarray) -> None:
+        """New priorities (positive) for rows ``index`` (as :meth:`sample_indexed` returned them)."""
+        priorities = np.asarray(priorities, np.float64)
+        if priorities.shape != np.shape(index) or not (np.isfinite(priorities).all() and (priorities > 0).all()):
+            raise ValueError("priorities must be positive, finite and one per sampled row")
+        self.priorities.set(index, priorities)
+        self.max_priority = max(self.max_priority, float(priorities.max()))
+
+    def probabilities(self) -> np.ndarray:
+        """Each stored row's chance of being drawn by one uniform mass (its priority over the total)."""
+        return self.priorities.get(np.arange(self.size)) / self.priorities.total
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "max_priority": self.max_priority,
+                "priorities": torch.from_numpy(self.priorities.get(np.arange(self.size)).copy())}
+
+    def load_state_dict(self, saved: dict) -> None:
+        """Rows and priorities (a checkpoint without priorities gives every row priority 1)."""
+        rows, cursor, added = int(saved["state"].shape[0]), int(saved["cursor"]), int(saved["added"])
+        priorities = saved["priorities"].numpy() if "priorities" in saved else np.ones(rows)
+        if added > rows and rows < self.capacity:
+            priorities = np.roll(priorities, -cursor, axis=0)
+        super().load_state_dict(saved)
+        self.priorities = SumTree(self.capacity)
+        self.priorities.set(np.arange(self.size), priorities[: self.size])
+        self.max_priority = float(saved.get("max_priority", 1.0))

@@ -19,6 +19,7 @@ from proto.settings import section
 
 METHODS: dict[str, str] = {
     "cdl": "causal.methods.cdl",
+    "elden": "causal.methods.elden",
     "modular": "causal.methods.dense:MODULAR",
     "monolithic": "causal.methods.dense:MONOLITHIC",
     "cbm": "causal.methods.cbm",

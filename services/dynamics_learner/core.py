@@ -8,7 +8,7 @@ from pathlib import Path
 from causal.factored import FactorLayout
 from causal.method import export_tensors
 from causal.methods import get_method, method_config
-from causal.replay import ReplayBuffer, heldout_mask
+from causal.replay import PrioritisedReplay, ReplayBuffer, heldout_mask
 from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.dynamics_learner.config import DynamicsLearnerConfig
@@ -23,7 +23,8 @@ class DynamicsLearnerCore:
         self.method = get_method(cfg.method)
         self.layout = FactorLayout.from_spec(spec)
         self.trainer = self.method.trainer(self.layout, method_config(cfg.models, cfg.method), cfg.seed)
-        self.replay = ReplayBuffer(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
+        replay = PrioritisedReplay if self.method.prioritised else ReplayBuffer
+        self.replay = replay(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.version = 0
         self.env_steps = 0
         self.graph_version = -1
@@ -53,7 +54,17 @@ class DynamicsLearnerCore:
         return self.ready and (ratio <= 0 or self.trainer.updates < ratio * self.env_steps)
 
     def train_step(self) -> dict[str, float]:
-        stats = self.trainer.update(*self.replay.sample(self.trainer.batch_size, self.method.learns_reward))
+        """One update on a replay batch. For a ``prioritised`` method the batch is drawn by priority
+        and the rows get the priorities the trainer reports for them (its ``last_priorities``,
+        ``None`` to leave them: every row then keeps its first priority, and sampling is uniform)."""
+        if not isinstance(self.replay, PrioritisedReplay):
+            stats = self.trainer.update(*self.replay.sample(self.trainer.batch_size, self.method.learns_reward))
+        else:
+            index, batch = self.replay.sample_indexed(self.trainer.batch_size, self.method.learns_reward)
+            stats = self.trainer.update(*batch)
+            priorities = getattr(self.trainer, "last_priorities", None)
+            if priorities is not None:
+                self.replay.update_priorities(index, priorities)
         self.last_stats.update(stats)
         return stats
 

@@ -18,7 +18,8 @@ from services.intrinsic_reward.config import IntrinsicRewardConfig
 class IntrinsicRewardCore:
     """Scores batches with ``cfg.reward``. Until the first weights arrive every reward is 0 (with
     ``weights_version`` 0), so the policy-learner is never starved; until the first graph the
-    causal parents are every input (PredDiff is then 0).
+    causal parents are every input (PredDiff is then 0). A reward with a warm-up (its
+    ``warmup_env_steps``) is 0 until the weights it reads have seen that many env steps.
 
     An ``ensemble`` reward reads this service's own :class:`BootstrapEnsemble`, trained on the
     batches after scoring them; its ``weights_version`` is the ensemble's update count."""
@@ -33,6 +34,7 @@ class IntrinsicRewardCore:
         self.model: nn.Module | None = None
         self.model_config = ""
         self.weights_version = 0
+        self.weights_env_steps = 0
         self.graph_version = -1
         n = spec.num_factors
         self.parents = np.ones((n, n + 1), dtype=bool)
@@ -51,7 +53,7 @@ class IntrinsicRewardCore:
                 raise ValueError(f"weights v{weights.version} do not fit the EnvSpec")
             self.model, self.model_config = model, weights.config_json
         import_tensors(self.model, weights.tensors)
-        self.weights_version = weights.version
+        self.weights_version, self.weights_env_steps = weights.version, weights.env_steps
         return True
 
     def apply_graph(self, report: GraphReport) -> bool:
@@ -67,6 +69,8 @@ class IntrinsicRewardCore:
         check_fits(self.spec, batch)
         model = self.ensemble if self.ensemble is not None else self.model
         if self.ensemble is not None and self.ensemble.size < self.cfg.ensemble_warmup:
+            model = None
+        if model is not None and self.weights_env_steps < self.reward.warmup_env_steps(model):
             model = None
         if model is None:
             rewards = np.zeros(len(batch), np.float32)

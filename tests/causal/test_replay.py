@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from causal.replay import ReplayBuffer, heldout_mask
 
@@ -61,3 +62,53 @@ def test_rewards_are_kept_sampled_on_request_and_checkpointed() -> None:
     assert (again.reward == 0).all() and (again.state == replay.state).all()
     again.load_state_dict(saved)
     assert (again.reward == replay.reward).all()
+
+
+def _prioritised(rows: int, capacity: int | None = None, seed: int = 0):
+    from causal.replay import PrioritisedReplay
+
+    buf = PrioritisedReplay(capacity or rows, state_dim=1, action_dim=1, seed=seed)
+    values = np.arange(rows, dtype=np.float32)[:, None]
+    buf.add(values, values, values + 1)
+    return buf
+
+
+def test_prioritised_replay_samples_in_proportion_to_priorities() -> None:
+    buf = _prioritised(6)
+    priorities = np.array([1.0, 0.5, 4.0, 0.25, 2.0, 0.25])
+    buf.update_priorities(np.arange(6), priorities)
+    draws = np.concatenate([buf.sample_indexed(64)[0] for _ in range(500)])
+    expected = priorities / priorities.sum()
+    frequency = np.bincount(draws, minlength=6) / len(draws)
+    np.testing.assert_allclose(frequency, expected, atol=0.01)  # 32,000 stratified draws
+    np.testing.assert_allclose(buf.probabilities(), expected)
+    index, (s, a, n) = buf.sample_indexed(16)
+    assert (s[:, 0].numpy() == index).all() and (n - s == 1).all()
+
+
+def test_prioritised_replay_gives_new_rows_the_largest_priority_and_refuses_bad_ones() -> None:
+    buf = _prioritised(4, capacity=8)
+    buf.update_priorities(np.array([0, 1]), np.array([3.0, 0.5]))
+    more = np.array([[9.0], [10.0]], np.float32)
+    buf.add(more, more, more)
+    np.testing.assert_allclose(buf.priorities.get(np.arange(6)), [3.0, 0.5, 1.0, 1.0, 3.0, 3.0])
+    with pytest.raises(ValueError, match="positive"):
+        buf.update_priorities(np.array([0]), np.array([0.0]))
+
+
+def test_prioritised_replay_round_trips_its_priorities_through_a_checkpoint() -> None:
+    from causal.replay import PrioritisedReplay
+
+    buf = _prioritised(7, capacity=5)  # wrapped: rows 2..6 remain
+    buf.update_priorities(np.arange(5), np.array([1.0, 2.0, 3.0, 4.0, 5.0]))
+    rows_by_value = {float(buf.state[k, 0]): buf.priorities.get(np.array([k]))[0] for k in range(5)}
+    bigger = PrioritisedReplay(10, 1, 1)
+    bigger.load_state_dict(buf.state_dict())
+    restored = {float(bigger.state[k, 0]): bigger.priorities.get(np.array([k]))[0] for k in range(bigger.size)}
+    assert restored == rows_by_value and bigger.max_priority == 5.0
+    plain = PrioritisedReplay(5, 1, 1)
+    plain.load_state_dict(ReplayBuffer(5, 1, 1).state_dict() | {"state": buf.state_dict()["state"],
+                                                                  "action": buf.state_dict()["action"],
+                                                                  "next_state": buf.state_dict()["next_state"],
+                                                                  "reward": buf.state_dict()["reward"], "added": 5})
+    np.testing.assert_allclose(plain.probabilities(), np.full(5, 0.2))  # a checkpoint without priorities

@@ -76,10 +76,12 @@ def test_batched_rewards_match_the_models_own_masked_nll(eta: float) -> None:
 
 
 def test_registry() -> None:
-    assert set(REWARDS) == {"preddiff", "curiosity", "disagreement"}
+    assert set(REWARDS) == {"preddiff", "curiosity", "disagreement", "elden"}
     assert make_reward("curiosity", 2.0) == PredictionError(eta=2.0)
+    assert make_reward("elden", 0.5).eta == 0.5 and make_reward("elden").source == "dynamics"
+    assert make_reward("preddiff").warmup_env_steps(None) == 0
     with pytest.raises(KeyError, match="known"):
-        make_reward("elden")
+        make_reward("nope")
 
 
 def test_core_scores_batches_with_the_newest_weights_and_graph() -> None:
