@@ -33,6 +33,7 @@ import torch
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
+from causal.generalisation import random_transitions
 from causal.graph_metrics import score_graph
 from envs.chemical import ChemicalEnv
 from envs.graphs import random_dag
@@ -41,25 +42,20 @@ METRICS = ("update_s", "cmi_2k_s", "final_graph_s", "peak_rss_mb")
 TRANSITIONS, HELD_OUT, EVAL = 20_000, 20_000, 2_000
 
 
-def make_env(graph: str, objects: int) -> ChemicalEnv:
+def env_kwargs(graph: str, objects: int) -> dict[str, Any]:
+    """Chemical's constructor arguments; ``random`` is a fixed random DAG with 2 edges per object."""
     dag = random_dag(objects, min(2 * objects, objects * (objects - 1) // 2), seed=0) if graph == "random" else graph
-    return ChemicalEnv(graph=dag, num_objects=objects)
+    return {"graph": dag, "num_objects": objects}
 
 
-def collect(env: ChemicalEnv, count: int, seed: int) -> tuple[torch.Tensor, ...]:
-    """``count`` uniformly random transitions (the chapter's Chemical collection)."""
-    obs, _ = env.reset(seed=seed)
-    rng = np.random.default_rng(seed)
-    state = np.empty((count, len(obs)), np.float32)
-    action = rng.integers(0, env.action_space.n, (count, 1)).astype(np.float32)
-    nxt = np.empty_like(state)
-    for t in range(count):
-        state[t] = obs
-        obs, _, _, truncated, _ = env.step(int(action[t, 0]))
-        nxt[t] = obs
-        if truncated:
-            obs, _ = env.reset()
-    return torch.from_numpy(state), torch.from_numpy(action), torch.from_numpy(nxt)
+def make_env(graph: str, objects: int) -> ChemicalEnv:
+    return ChemicalEnv(**env_kwargs(graph, objects))
+
+
+def collect(graph: str, objects: int, count: int, seed: int) -> tuple[tuple[torch.Tensor, ...], ...]:
+    """(train, held-out) of ``count`` transitions each, uniformly random actions (Chemical's collection)."""
+    train, held = random_transitions(env_kwargs(graph, objects), 2 * count, seed, heldout_fraction=0.5)
+    return train.tensors(), held.tensors()
 
 
 def timed(fn, repeats: int) -> float:
@@ -74,12 +70,13 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0) -> dict[str
     torch.set_num_threads(1)
     env = make_env(graph, objects)
     layout = FactorLayout.from_spec(env.env_spec())
-    train, held = collect(env, TRANSITIONS, seed), collect(env, HELD_OUT, seed + 1)
+    train, held = collect(graph, objects, TRANSITIONS, seed)
+    held = tuple(x[:HELD_OUT] for x in held)
     trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
     rng = np.random.default_rng(seed)
 
     def update() -> None:
-        index = torch.from_numpy(rng.integers(0, TRANSITIONS, 64))
+        index = torch.from_numpy(rng.integers(0, len(train[0]), 64))
         trainer.update(*(x[index] for x in train))
 
     timed(update, 3)  # warm-up
@@ -145,7 +142,7 @@ def profile(graph: str, objects: int) -> None:
     torch.set_num_threads(1)
     env = make_env(graph, objects)
     trainer = CDLTrainer(FactorLayout.from_spec(env.env_spec()), CDLConfig())
-    data = collect(env, 2_000, 0)
+    data = tuple(x[:2_000] for x in collect(graph, objects, 2_000, 0)[0])
     batch = tuple(x[:64] for x in data)
     trainer.update(*batch)
     from torch.profiler import ProfilerActivity, profile as torch_profile
@@ -178,8 +175,8 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
             print(json.dumps(rows[-1]), flush=True)
     (args.out / "scale.json").write_text(json.dumps(rows, indent=1))
-    print(f"\n| graph | objects | d_S | parameters | s/update | s/CMI (2k) | s final graph (20k) | peak RSS MB | "
-          f"s to best F1 0.9 | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
+    print("\n| graph | objects | d_S | parameters | s/update | s/CMI (2k) | s final graph (20k) | peak RSS MB | "
+          "s to best F1 0.9 | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         reach = f"{r['to_f1_0.9_s']:.0f}" if r["to_f1_0.9_s"] else f"> {r['budget_s']:.0f}"
         print(f"| {r['graph']} | {r['objects']} | {r['factors']} | {r['parameters']:,} | {r['update_s']:.3f} | "

@@ -28,6 +28,7 @@ from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.edge_tests import EdgeEstimate, fdr_graph
 from causal.factored import FactorLayout
+from causal.generalisation import random_transitions
 from causal.graph_metrics import binary_scores, score_graph, scored_entries
 from envs.chemical import ChemicalEnv
 from envs.graphs import random_dag
@@ -35,33 +36,20 @@ from envs.graphs import random_dag
 HELDOUT_SIZES = (1_000, 4_000, 16_000)
 
 
-def chemical(graph: str, objects: int) -> ChemicalEnv:
-    """``random:<objects>:<edges>:<seed>`` draws a random DAG; anything else is a Chemical graph."""
+def chemical(graph: str, objects: int) -> dict[str, Any]:
+    """Chemical's constructor arguments: ``random:<objects>:<edges>:<seed>`` draws a random DAG;
+    anything else is a Chemical graph."""
     if graph.startswith("random:"):
         _, n, edges, seed = graph.split(":")
-        return ChemicalEnv(graph=random_dag(int(n), int(edges), int(seed)))
-    return ChemicalEnv(graph=graph, num_objects=objects)
+        return {"graph": random_dag(int(n), int(edges), int(seed))}
+    return {"graph": graph, "num_objects": objects}
 
 
-def transitions(env: ChemicalEnv, count: int, seed: int) -> tuple[torch.Tensor, ...]:
-    obs, _ = env.reset(seed=seed)
-    rng = np.random.default_rng(seed)
-    action = rng.integers(0, env.action_space.n, (count, 1)).astype(np.float32)
-    state, nxt = np.empty((count, len(obs)), np.float32), np.empty((count, len(obs)), np.float32)
-    for t in range(count):
-        state[t] = obs
-        obs, _, _, truncated, _ = env.step(int(action[t, 0]))
-        nxt[t] = obs
-        if truncated:
-            obs, _ = env.reset()
-    return torch.from_numpy(state), torch.from_numpy(action), torch.from_numpy(nxt)
-
-
-def train(env: ChemicalEnv, updates: int, seed: int) -> CDLTrainer:
+def train(kwargs: dict[str, Any], data: tuple[torch.Tensor, ...], updates: int, seed: int) -> CDLTrainer:
+    """CDL on ``data`` for ``updates`` updates, the causal term's parents refreshed every 250."""
     torch.manual_seed(seed)
-    data = transitions(env, 100_000, seed)
-    probe = tuple(x[:2_000] for x in transitions(env, 2_000, seed + 100))
-    trainer = CDLTrainer(FactorLayout.from_spec(env.env_spec()), CDLConfig(), seed=seed)
+    probe = tuple(x[:2_000] for x in data)
+    trainer = CDLTrainer(FactorLayout.from_spec(ChemicalEnv(**kwargs).env_spec()), CDLConfig(), seed=seed)
     rng = np.random.default_rng(seed)
     for update in range(1, updates + 1):
         index = torch.from_numpy(rng.integers(0, len(data[0]), 64))
@@ -80,10 +68,11 @@ def scores(graph: np.ndarray, truth: np.ndarray) -> dict[str, float]:
 
 
 def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[str, Any]:
-    env = chemical(graph, objects)
-    truth = env.global_graph.astype(bool)
-    trainer = train(env, args.updates, seed)
-    held = transitions(env, max(HELDOUT_SIZES), seed + 1_000)
+    kwargs = chemical(graph, objects)
+    truth = ChemicalEnv(**kwargs).global_graph.astype(bool)
+    train_set, held_set = random_transitions(kwargs, 100_000 + max(HELDOUT_SIZES), seed, heldout_fraction=0.16)
+    trainer = train(kwargs, train_set.tensors(), args.updates, seed)
+    held = tuple(x[: max(HELDOUT_SIZES)] for x in held_set.tensors())
     gains = trainer.model.pointwise_cmi(*held).numpy()
     estimate = EdgeEstimate.from_pointwise(gains)
     oracle = score_graph(estimate.cmi, truth, 0.02)

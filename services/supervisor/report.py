@@ -195,17 +195,24 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
     """Graph scores against env steps over the run."""
     if not history:
         return
-    steps = [h["env_steps"] for h in history]
-    fig, ax = plt.subplots(figsize=(7, 4))
     keys = ["f1", "best_threshold_f1", "accuracy", "roc_auc"]
     if history[0].get("unidentifiable_true_edges", 0) > 0:  # else identical to the full scores
         keys += ["identifiable_f1", "identifiable_best_threshold_f1"]
     keys += ["with_self_best_threshold_f1"]  # the figure Table 3.1 reports
+    plot_scores(history, keys, "score", path)
+
+
+def plot_scores(history: list[dict[str, float]], keys: list[str] | tuple[str, ...], ylabel: str, path: Path) -> None:
+    """Scores in [0, 1] against env steps, one line per key the history has."""
+    if not history:
+        return
+    steps = [h["env_steps"] for h in history]
+    fig, ax = plt.subplots(figsize=(7, 4))
     for key in keys:
         if key in history[0]:
             ax.plot(steps, [h[key] for h in history], label=key)
     ax.set_xlabel("env steps")
-    ax.set_ylabel("score")
+    ax.set_ylabel(ylabel)
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")

@@ -9,11 +9,10 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 
 from causal.graph_metrics import scored_entries  # noqa: E402
 from proto.messages import LocalGraphReport  # noqa: E402
-from services.supervisor.report import comparison_heatmap  # noqa: E402
+from services.supervisor.report import comparison_heatmap, plot_scores  # noqa: E402
 
 CURVE_KEYS = ("roc_auc", "pr_auc", "best_f1", "f1")
 
@@ -55,18 +54,4 @@ def plot_examples(report: LocalGraphReport, path: Path, label: str = "last repor
 
 def plot_curve(history: list[dict[str, float]], path: Path) -> None:
     """Local-graph scores against env steps over the run."""
-    if not history:
-        return
-    steps = np.array([h["env_steps"] for h in history])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for key in CURVE_KEYS:
-        if key in history[0]:
-            ax.plot(steps, [h[key] for h in history], label=key)
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("local-graph score")
-    ax.set_ylim(0, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    plot_scores(history, CURVE_KEYS, "local-graph score", path)
