@@ -9,15 +9,23 @@ over off-diagonal entries). The run's own held-out score (random-policy transiti
 summary) is shown beside it. The manipulation scene stands in for the chapter's Kitchen (its
 scripted policy: the Uniform skills).
 
+Every local-graph estimator a method's model supports is evaluated on the same episodes (ELDEN:
+its Jacobians and the attention baseline, Table 5.1's "Attn" row), and ``--compare`` prints the
+rows of other methods' tables (say, pCMI from ``runs/local-table/cdl-table.json``) beside them.
+Method flags per environment (:data:`METHOD_FLAGS`) follow the chapter: ELDEN's rows of Table 5.1
+use the best lambda of Table 5.2 per environment.
+
     python -m benchmarks.local_graph_table [--envs thawing cleaning-car manipulation] [--seeds 0 1 2]
-        [--method cdl] [--out runs/local-table] [--reuse] [--episodes 50]
+        [--method cdl] [--out runs/local-table] [--reuse] [--episodes 50] [--compare TABLE.json ...]
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -28,6 +36,7 @@ from causal.graph_metrics import score_local_graphs
 from causal.methods import get_method
 from envs.registry import env_entry
 from services.supervisor.config import load_run_config
+from services.supervisor.stop_rules import CATCH_UP_TOLERANCE
 from services.supervisor.evaluation import load_model
 from services.supervisor.wiring import env_kwargs
 
@@ -41,10 +50,26 @@ BUDGETS: dict[str, list[str]] = {
 """Per env: task and budget (10,000 updates each; 400k steps take ~10 minutes on a household env here).
 The run waits up to 2 hours for the learner to make its share of updates, so a loaded machine still
 gives every seed the same training."""
-CHAPTER = {"thawing": {"ELDEN": (0.71, 0.57), "pCMI": (0.55, 0.60)},
-           "cleaning-car": {"ELDEN": (0.78, 0.66), "pCMI": (0.73, 0.78)},
-           "manipulation": {"ELDEN": (0.66, 0.25), "pCMI": (0.60, 0.28)}}
+METHOD_FLAGS: dict[str, dict[str, list[str]]] = {
+    "elden": {"thawing": ["--elden-grad-reg", "1e-2"], "cleaning-car": ["--elden-grad-reg", "1e-3"],
+              "manipulation": ["--elden-grad-reg", "1e-4"],
+              "*": ["--evaluator-local-samples", "250", "--evaluator-local-capacity", "2000",
+                    "--evaluator-min-interval-s", "30"]},
+}
+"""Per method and env (``*``: every env): ELDEN's lambda is Table 5.2's best per env (Table 5.1's ELDEN
+rows); its Jacobians on 5 members cost ~30 ms a transition here, so the live evaluator scores 250
+transitions at most every 30 s and keeps 2,000 (the final held-out score uses all of them)."""
+CHAPTER = {"thawing": {"ELDEN": (0.71, 0.57), "pCMI": (0.55, 0.60), "Attn": (0.65, 0.63),
+                       "Input Mask": (0.50, 0.40), "Attn Mask": (0.45, 0.47)},
+           "cleaning-car": {"ELDEN": (0.78, 0.66), "pCMI": (0.73, 0.78), "Attn": (0.66, 0.55),
+                            "Input Mask": (0.50, 0.32), "Attn Mask": (0.47, 0.43)},
+           "manipulation": {"ELDEN": (0.66, 0.25), "pCMI": (0.60, 0.28), "Attn": (0.51, 0.22),
+                            "Input Mask": (0.50, 0.08), "Attn Mask": (0.52, 0.13)}}
 """Table 5.1 (ROC AUC, F1): Thawing, CarWash, Kitchen."""
+ROW_NAMES = {"jacobian": "ELDEN", "pcmi": "pCMI", "attention": "Attn"}
+"""Our estimator names -> Table 5.1's rows."""
+ESTIMATORS = {"elden": "causal.methods.elden:LOCAL_ESTIMATORS"}
+"""Methods whose models support more local-graph estimators than the one the evaluator runs."""
 EVAL_SEED = 100_000
 """Evaluation episodes use seeds from here on: never seen in training (runs seed workers from 0-2)."""
 
@@ -79,40 +104,108 @@ def scripted_transitions(name: str, kwargs: dict[str, Any], episodes: int) -> tu
     return tuple(np.stack([r[i] for r in rows]).astype(np.float32 if i < 3 else np.uint8) for i in range(4))
 
 
+def estimators(method: str) -> dict[str, Any]:
+    """Every local-graph estimator of ``method``'s model: its own, and those :data:`ESTIMATORS` lists."""
+    own = get_method(method).local_graph
+    found = {own.name: own}
+    if method in ESTIMATORS:
+        module, _, name = ESTIMATORS[method].partition(":")
+        found.update(getattr(importlib.import_module(module), name))
+    return found
+
+
 def evaluate(run_dir: Path, episodes: int) -> dict[str, Any]:
     cfg = load_run_config(run_dir)
-    method = get_method(cfg.method)
     model = load_model(run_dir)
     state, action, next_state, truth = scripted_transitions(cfg.env, env_kwargs(cfg), episodes)
-    with torch.no_grad():
-        scores = method.local_graph.scores(model, *(torch.from_numpy(x) for x in (state, action, next_state)))
-    metrics = score_local_graphs(np.asarray(scores), truth, float(method.local_graph.threshold(model)))
+    tensors = tuple(torch.from_numpy(x) for x in (state, action, next_state))
+    scored = {}
+    for name, estimator in estimators(cfg.method).items():
+        with torch.no_grad():
+            scores = estimator.scores(model, *tensors)
+        scored[name] = score_local_graphs(np.asarray(scores), truth, float(estimator.threshold(model)))
     summary = json.loads((run_dir / "summary.json").read_text())
-    return {"env": cfg.env, "seed": cfg.seed, "transitions": int(len(state)), "updates": summary.get("updates"),
-            "env_steps": summary.get("env_steps"), "scripted": metrics,
+    return {"env": cfg.env, "seed": cfg.seed, "method": cfg.method, "transitions": int(len(state)),
+            "updates": summary.get("updates"), "env_steps": summary.get("env_steps"),
+            "scripted": scored[get_method(cfg.method).local_graph.name], "estimators": scored,
             "heldout": {k: summary.get("local_graph", {}).get(k) for k in ("roc_auc", "pr_auc", "best_f1")}}
 
 
 def train(env: str, seed: int, method: str, run_dir: Path, extra: list[str]) -> None:
+    flags = METHOD_FLAGS.get(method, {})
+    local_only = get_method(method).global_graph is None
     cmd = [sys.executable, "-m", "services.cli", "run", "--env", env, "--method", method, "--seed", str(seed),
            "--run-dir", str(run_dir), "--router-port", "0", "--dashboard-port", "0", "--metrics-base-port", "0",
-           "--max-seconds", "0", "--catch-up-timeout-s", "7200", "--progress", "false", *BUDGETS[env], *extra]
+           "--max-seconds", "0", "--progress", "false", *BUDGETS[env], *flags.get("*", []), *flags.get(env, []),
+           *(["--catch-up-timeout-s", "14400"] if local_only else []), *extra]
     print("$", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    with subprocess.Popen(cmd, stdout=subprocess.DEVNULL) as run:
+        if local_only:
+            _stop_when_trained(run, run_dir, _target_updates(cmd))
+        if run.wait() != 0:
+            raise subprocess.CalledProcessError(run.returncode, cmd)
+
+
+def _target_updates(cmd: list[str]) -> float:
+    value = {k: v for k, v in zip(cmd, cmd[1:])}
+    return CATCH_UP_TOLERANCE * float(value["--learner-updates-per-env-step"]) * float(value["--max-env-steps"])
+
+
+def _stop_when_trained(run: subprocess.Popen, run_dir: Path, updates: float) -> None:
+    """Stop a run of a method without a global graph once its learner has made its share of updates.
+
+    The supervisor's catch-up after the env-step budget waits for a *global* graph report from
+    weights trained that long; a local-only method (ELDEN) publishes none, so it would wait for the
+    catch-up timeout. This watches the learner's own beats (``causeway status``) instead."""
+    while run.poll() is None:
+        time.sleep(30)
+        status = subprocess.run([sys.executable, "-m", "services.cli", "status", "--run-dir", str(run_dir), "--json"],
+                                capture_output=True, text=True)
+        try:
+            rows = json.loads(status.stdout)["services"]
+        except (ValueError, KeyError):
+            continue
+        done = [r["values"].get("updates", 0) for r in rows if r["service"] == "dynamics-learner"]
+        if done and max(done) >= updates:
+            subprocess.run([sys.executable, "-m", "services.cli", "stop", "--run-dir", str(run_dir)],
+                           capture_output=True)
+            return
+
+
+def scored_estimators(result: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """A result's metrics per estimator (results written before several were evaluated hold only
+    their method's own, under ``scripted``)."""
+    if "estimators" in result:
+        return result["estimators"]
+    return {get_method(result.get("method", "cdl")).local_graph.name: result["scripted"]}
+
+
+def rows(results: list[dict[str, Any]]) -> list[tuple[str, str, list[dict[str, float]]]]:
+    """(env, Table 5.1 row name, per-seed metrics) for every env and estimator in ``results``."""
+    out = []
+    for env in dict.fromkeys(r["env"] for r in results):
+        scored = [scored_estimators(r) for r in results if r["env"] == env]
+        for name in dict.fromkeys(n for s in scored for n in s):
+            out.append((env, ROW_NAMES.get(name, name), [s[name] for s in scored if name in s]))
+    return out
 
 
 def table(results: list[dict[str, Any]], method: str) -> str:
-    lines = ["| env | seeds | ROC AUC | PR AUC | best F1 | held-out ROC AUC / best F1 | chapter pCMI | chapter ELDEN |",
-             "|---|---|---|---|---|---|---|---|"]
-    for env in dict.fromkeys(r["env"] for r in results):
-        rows = [r for r in results if r["env"] == env]
-        stat: Callable[[str, str], str] = lambda part, key: _mean_sd([r[part][key] for r in rows])  # noqa: E731
-        chapter = CHAPTER.get(env, {})
-        cell = lambda who: "{:.2f} / {:.2f}".format(*chapter[who]) if who in chapter else "-"  # noqa: E731
-        lines.append(f"| {env} | {len(rows)} | {stat('scripted', 'roc_auc')} | {stat('scripted', 'pr_auc')} | "
-                     f"{stat('scripted', 'best_f1')} | {stat('heldout', 'roc_auc')} / {stat('heldout', 'best_f1')} | "
-                     f"{cell('pCMI')} | {cell('ELDEN')} |")
-    return f"method {method}; scripted-policy episodes, pooled off-diagonal entries\n\n" + "\n".join(lines)
+    """Each estimator's scores on the scripted episodes beside the chapter's row of the same name
+    (results of several methods may be mixed: ``--compare``)."""
+    lines = ["| env | estimator | seeds | ROC AUC | PR AUC | best F1 | chapter ROC AUC / F1 |",
+             "|---|---|---|---|---|---|---|"]
+    for env, row, metrics in rows(results):
+        stat: Callable[[str], str] = lambda key: _mean_sd([m[key] for m in metrics])  # noqa: E731
+        chapter = CHAPTER.get(env, {}).get(row)
+        cell = "{:.2f} / {:.2f}".format(*chapter) if chapter else "-"
+        lines.append(f"| {env} | {row} | {len(metrics)} | {stat('roc_auc')} | {stat('pr_auc')} | "
+                     f"{stat('best_f1')} | {cell} |")
+    held = [f"{r['env']} s{r['seed']} {r.get('method', 'cdl')}: {_mean_sd([r['heldout']['roc_auc']])} / "
+            f"{_mean_sd([r['heldout']['best_f1']])}" for r in results]
+    return (f"method {method}; scripted-policy episodes, pooled off-diagonal entries, mean ± sd over seeds\n\n"
+            + "\n".join(lines) + "\n\nheld-out (random policy, run's final model) ROC AUC / best F1: "
+            + "; ".join(held))
 
 
 def _mean_sd(values: list[float | None]) -> str:
@@ -131,6 +224,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/local-table"))
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--reuse", action="store_true", help="evaluate existing run directories instead of training again")
+    p.add_argument("--compare", nargs="*", type=Path, default=[],
+                   help="other methods' <method>-table.json to print beside (e.g. runs/local-table/cdl-table.json)")
     args, extra = p.parse_known_args(argv)
     if get_method(args.method).local_graph is None:
         p.error(f"method {args.method!r} estimates no local graphs")
@@ -143,7 +238,12 @@ def main(argv: list[str] | None = None) -> None:
             results.append(evaluate(run_dir, args.episodes))
             print(json.dumps(results[-1]), flush=True)
     (args.out / f"{args.method}-table.json").write_text(json.dumps(results, indent=1))
-    print(table(results, args.method))
+    missing = [str(path) for path in args.compare if not path.exists()]
+    if missing:
+        print(f"not found (left out): {', '.join(missing)}")
+    others = [r for path in args.compare if path.exists() for r in json.loads(path.read_text())
+              if r["env"] in args.envs]
+    print(table(results + others, args.method))
 
 
 if __name__ == "__main__":

@@ -49,6 +49,8 @@ class ELDENConfig:
     grad_clip: float = doc(10.0, "gradient norm clip (reference: 10)")
     grad_reg: float = doc(1e-3, "lambda of eqs. 5.2-5.3: weight of sum_ij |d p(s^j_t+1) / d s^i_t| in the loss "
                                 "(Table 5.2's best: 1e-2 Thawing, 1e-3 CarWash, 1e-4 Kitchen; released config: 0)")
+    grad_reg_rows: int = doc(8, "rows per member on which the regulariser is estimated each update (0: all; an "
+                                "unbiased estimate either way, the batch being random)")
     mixup: bool = doc(True, "Mixup (Beta(mixup_alpha, mixup_alpha) weights) over inputs, action and next-state "
                             "labels when the env has discrete factors or actions")
     mixup_alpha: float = doc(0.1, "Beta parameter of the Mixup weights (reference: 0.1)")
@@ -80,6 +82,8 @@ class ELDENConfig:
                 raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
         if self.graph_of not in GRAPH_OF:
             raise ValueError(f"graph_of must be one of {GRAPH_OF}, got {self.graph_of!r}")
+        if self.grad_reg_rows < 0:
+            raise ValueError(f"grad_reg_rows must be >= 0, got {self.grad_reg_rows}")
         if not self.log_std_min < self.log_std_max or self.reward_warmup_env_steps < 0:
             raise ValueError("log_std_min must be below log_std_max and reward_warmup_env_steps >= 0")
 

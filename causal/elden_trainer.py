@@ -70,13 +70,13 @@ class ELDENTrainer:
             self.last_priorities = self.priorities(x, targets)
         if self.uses_mixup:
             x, targets = mixup(x, targets, *self._mixup_draw(x.shape[0], x.shape[1]))
-        x = x.requires_grad_(self.cfg.grad_reg > 0)
-        out = self.model(x)
-        nll = -self.model.log_likelihood(out, targets)
+        nll = -self.model.log_likelihood(self.model(x), targets)
         loss = nll.mean(dim=1).sum()
         stats = {"nll_full": float(nll.detach().mean())}
         if self.cfg.grad_reg > 0:
-            penalty = self.gradient_penalty(out, x, targets)
+            rows = self.cfg.grad_reg_rows or x.shape[1]
+            sub = x[:, :rows].detach().requires_grad_(True)
+            penalty = self.gradient_penalty(self.model(sub), sub, Targets(*(t[:, :rows] for t in targets)))
             loss = loss + self.cfg.grad_reg * penalty
             stats["grad_penalty"] = float(penalty.detach()) / self.cfg.members
         self.optimizer.zero_grad(set_to_none=True)
@@ -87,9 +87,11 @@ class ELDENTrainer:
         return stats
 
     def gradient_penalty(self, out: torch.Tensor, x: torch.Tensor, targets: Targets) -> torch.Tensor:
-        """``sum_ij |d p(s^j_t+1) / d s^i_t|`` of eqs. 5.2-5.3, averaged over each member's rows and
-        summed over members, estimated with one output ``j`` per row drawn uniformly (times ``d_S``):
-        unbiased for the sum over outputs, at the cost of one extra backward pass instead of ``d_S``.
+        """``sum_ij |d p(s^j_t+1) / d s^i_t|`` of eqs. 5.2-5.3 for outputs ``out`` of inputs ``x`` (which
+        require grad), averaged over each member's rows and summed over members, estimated with one
+        output ``j`` per row drawn uniformly (times ``d_S``): unbiased for the sum over outputs, at the
+        cost of one extra backward pass instead of ``d_S``. The trainer estimates it on the first
+        ``grad_reg_rows`` rows of each member's (random) share.
         Inputs are reduced per variable as the local graphs are (:meth:`ELDENModel.reduce_inputs`)."""
         outputs = self.model.num_outputs
         chosen = torch.from_numpy(self.rng.integers(0, outputs, out.shape[:2]))
