@@ -101,10 +101,10 @@ class CBMTrainer:
         causal = self.updates % self.cfg.causal_every == 0
         loss, stats = self._dynamics_loss(state, action, next_state, self.parents if causal else None)
         if reward is not None:
-            nll = self.model.reward.nll_all_masks(state, action, reward)
-            loss = loss + nll.mean(dim=1).sum()
-            per_mask = nll.detach().mean(dim=1)
-            stats["nll_reward"], stats["nll_reward_masked"] = float(per_mask[0]), float(per_mask[1:].mean())
+            errors = self.model.reward.squared_errors(state, action, reward)
+            loss = loss + errors.mean(dim=1).sum()
+            nll = self.model.reward.nll(errors.detach())
+            stats["nll_reward"], stats["nll_reward_masked"] = float(nll[0]), float(nll[1:].mean())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)

@@ -37,9 +37,8 @@ class CBMConfig:
     cmi_threshold: float = doc(0.02, "dynamics edge threshold, nats: edge if CMI >= this")
     reward_threshold: float = doc(0.01, "reward edge threshold, nats: S^i is a parent of the reward if its "
                                          "reward CMI >= this")
-    log_std_min: float = doc(-6.0, "lower clip of the log standard deviation of Gaussian heads (reward; "
-                                   "explicit dynamics)")
-    log_std_max: float = doc(2.0, "upper clip of the log standard deviation of Gaussian heads")
+    log_std_min: float = doc(-6.0, "explicit dynamics: lower clip of a continuous head's log standard deviation")
+    log_std_max: float = doc(2.0, "explicit dynamics: upper clip of a continuous head's log standard deviation")
 
     def __post_init__(self) -> None:
         if self.dynamics not in DYNAMICS:

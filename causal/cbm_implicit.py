@@ -112,7 +112,8 @@ class ImplicitDynamics(nn.Module):
         return self.head(aggregated)
 
     def label_scores(self, u: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
-        """Energies of each sample's own candidate: embeddings ``[Jc, K, B, E]``, codes ``[Jc, B, E]`` -> ``[Jc, K, B]``."""
+        """Energies of each sample's own candidate: embeddings ``[Jc, K, B, E]``, codes ``[Jc, B, E]``
+        -> ``[Jc, K, B]``."""
         return (u * codes[:, None]).sum(-1)
 
     def shared_scores(self, u: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:

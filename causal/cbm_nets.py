@@ -29,8 +29,9 @@ class MaskedFeatures(nn.Module):
         self.layout, self.codec = layout, FactorCodec(layout)
         codec = self.codec
         self.num_outputs, self.num_inputs, self.feature_dim = outputs, layout.num_factors + 1, feature
-        self.cat = FeatureGroup(outputs, len(codec.cat_factors), codec.max_cat, hidden, feature) if codec.cat_factors else None
-        self.cont = FeatureGroup(outputs, len(codec.cont_factors), codec.max_cont, hidden, feature) if codec.cont_factors else None
+        cat, cont = len(codec.cat_factors), len(codec.cont_factors)
+        self.cat = FeatureGroup(outputs, cat, codec.max_cat, hidden, feature) if cat else None
+        self.cont = FeatureGroup(outputs, cont, codec.max_cont, hidden, feature) if cont else None
         self.act = FeatureGroup(outputs, 1, layout.action_width, hidden, feature)
         order = torch.tensor(codec.cat_factors + codec.cont_factors + [layout.num_factors], dtype=torch.long)
         self.register_buffer("input_order", order)

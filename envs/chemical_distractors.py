@@ -5,10 +5,14 @@ after the step) with ``controllable`` distractors (random projections of the one
 ``uncontrollable`` ones (U(-1, 1) every step) appended to the observation (:mod:`envs.distractors`).
 Its truths: the Match graph with the distractors' rows and columns (:meth:`Distractors.extend_graph`),
 and the reward's parents at t: the parents of every colour and goal colour at t+1
-(:func:`envs.task_truth.parents_through_step`): the colours, the goal colours and the action.
-So the true minimal task abstraction (Theorem 4.1) keeps the colours and the goals, and drops the
-positions and all distractors; CDL's task-independent abstraction keeps the colours and the
-controllable distractors (descendants of the action) and drops the goals.
+(:func:`envs.task_truth.parents_through_step`) through the dependencies the dynamics *have*, which
+differ from the graph's in one place: every factor keeps a self-edge there by Assumption 4, but a
+colour that every action overwrites (the action sets it or re-samples it: on the ``full`` graph the
+last object's) does not depend on its old value, so it is no parent of the reward. The reward's
+parents are the other colours, the goal colours and the action; the true minimal task abstraction
+(Theorem 4.1) keeps those colours and the goals and drops the positions and all distractors, while
+CDL's task-independent abstraction keeps every colour and the controllable distractors (descendants of
+the action) and drops the goals.
 
 Task ``match-first`` rewards matching object 0 only (the fraction is over that one object): its reward
 reads ``obj0.color`` and ``obj0.goal_color``, so on the ``full`` graph (where object 0 is a root) the
@@ -68,7 +72,18 @@ class ChemicalDistractorsEnv(ChemicalMatchEnv):
         it reads at t+1 (Match: every colour, every goal, the action)."""
         n = self.num_objects
         read = [3 * k for k in self.task_objects] + [3 * n + k for k in self.task_objects]
-        return parents_through_step(self._global_graph, read)
+        return parents_through_step(self.dependencies(), read)
+
+    def dependencies(self) -> np.ndarray:
+        """The one-step graph without the self-edges the dynamics do not have (positions and distractors
+        are drawn anew, a colour that every action sets or re-samples forgets its old value)."""
+        graph = self._global_graph.copy()
+        n, size = self.num_objects, graph.shape[0]
+        kept = [3 * n + k for k in range(n)]  # goal colours are constant
+        kept += [3 * j for j in range(n) if any(i != j and j not in self.dag.descendants(i) for i in range(n))]
+        forgets = np.setdiff1d(np.arange(size), kept)
+        graph[forgets, forgets] = 0
+        return graph
 
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:

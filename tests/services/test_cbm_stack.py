@@ -52,7 +52,7 @@ def test_cbm_runs_through_the_stack_and_reports_the_reward_graph(tmp_path) -> No
     d = len(last.factor_names)
     assert last.kind == "cbm" and d == 12 and last.cmi.shape == (d, d + 1)
     assert last.reward_scores.shape == (d + 1,) and last.reward_threshold == pytest.approx(0.01)
-    assert last.true_reward_parents is not None and last.true_reward_parents.sum() == 5  # 2 colours, 2 goals, action
+    assert last.true_reward_parents is not None and last.true_reward_parents.sum() == 4  # obj0's colour, goals, action
     assert {"reward_f1", "abstraction_accuracy", "abstraction_accuracy_true_reward", "f1"} <= set(last.metrics)
     kept = minimal_abstraction(last.adjacency, last.reward_parents)
     assert last.controllable == kept.controllable and last.action_relevant == kept.action_relevant
@@ -71,8 +71,7 @@ def test_the_policy_learner_masks_its_input_with_the_minimal_abstraction() -> No
                          reward_threshold=0.01)
     core = PolicyLearnerCore(build_config(PolicyLearnerConfig, always_keep=""), spec)
     assert core.apply_graph(report)
-    assert [spec.factor_names[j] for j in core.kept_factors] == ["obj0.color", "obj1.color", "obj0.goal_color",
-                                                                 "obj1.goal_color"]
+    assert [spec.factor_names[j] for j in core.kept_factors] == ["obj0.color", "obj0.goal_color", "obj1.goal_color"]
 
 
 def test_a_cbm_run_is_checked_like_any_other() -> None:
