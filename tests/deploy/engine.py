@@ -107,6 +107,9 @@ def _cleanup(engine: Engine) -> None:
         _kill(pid)
     for mount in sorted(_mounts_under(engine.root), key=len, reverse=True):
         subprocess.run(["umount", "-l", mount], capture_output=True, timeout=30)
+    # rm, not shutil.rmtree: the image layers are ~10 GB in many small files (minutes either way);
+    # --one-file-system: never into something still mounted.
+    subprocess.run(["rm", "-rf", "--one-file-system", str(engine.root)], capture_output=True, timeout=1800)
     shutil.rmtree(engine.root, ignore_errors=True)
 
 

@@ -169,11 +169,19 @@ def find_links_dir() -> Path:
     raise RuntimeError(f"no find-links directory with a torch wheel in `pip config list`:\n{result.stdout}")
 
 
+WHEELS_PORT = 47391
+"""The find-links URL is a build argument, part of the torch layer's cache key: a fixed port keeps
+it the same from run to run (a random one rebuilt torch and everything after it every time)."""
+
+
 @contextmanager
 def serve_directory(directory: Path) -> Iterator[str]:
     """An HTTP listing of ``directory`` on 127.0.0.1 (a pip find-links page) while the block runs."""
     handler = functools.partial(_QuietHandler, directory=str(directory))
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    try:
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", WHEELS_PORT), handler)
+    except OSError:  # taken: any port works, only the build cache is lost
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:

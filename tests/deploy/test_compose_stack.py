@@ -19,7 +19,6 @@ import time
 import urllib.parse
 import urllib.request
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Iterator, TypeVar
 
 import pytest
@@ -35,6 +34,9 @@ RUN_ID = "compose"
 CAUSEWAY = str(REPO / ".venv" / "bin" / "causeway")
 SERVICES = ("router", "env-worker", "dynamics-learner", "graph-evaluator", "dashboard", "prometheus")
 CAUSEWAY_SERVICES = ("env-worker", "dynamics-learner", "graph-evaluator", "dashboard")
+WORKER_STEPS_PER_SECOND = 500
+"""Each env-worker's throttle here (2,000 by default): three of them still fit on two shared cores
+beside the learner, so the rate can be seen to rise (at 2,000 it rose 2,099 -> 2,327 steps/s)."""
 T = TypeVar("T")
 
 
@@ -59,7 +61,8 @@ class Stack:
         env = {k: v for k, v in self.engine.environ().items() if not k.startswith(("CAUSEWAY_", "ZENOH_"))}
         env.update(COMPOSE_FILE=os.pathsep.join(["compose.yaml", OVERRIDE]), COMPOSE_PROJECT_NAME=self.project,
                    ROUTER_PORT=str(self.ports["router"]), DASHBOARD_PORT=str(self.ports["dashboard"]),
-                   PROMETHEUS_PORT=str(self.ports["prometheus"]), GRAFANA_PORT=str(self.ports["grafana"]))
+                   PROMETHEUS_PORT=str(self.ports["prometheus"]), GRAFANA_PORT=str(self.ports["grafana"]),
+                   CAUSEWAY_MAX_STEPS_PER_SECOND=str(WORKER_STEPS_PER_SECOND))
         return env
 
     def run(self, command: list[str], timeout: float = 300, check: bool = True) -> subprocess.CompletedProcess:
@@ -156,6 +159,8 @@ def stack() -> Iterator[Stack]:
         standins.ensure_base_images(eng, ARTIFACTS / "build.log", times)
         standins.build_project_image(eng, ARTIFACTS / "build.log", times)
         the_stack.figures["build"] = vars(times)
+        size = eng.docker("image", "inspect", "-f", "{{.Size}}", standins.PROJECT_IMAGE).stdout.decode()
+        the_stack.figures["image_size_mb"] = round(int(size) / 1e6)
         yield the_stack
     finally:
         if not the_stack.down:
@@ -219,7 +224,7 @@ def test_make_scale_gives_three_env_workers_seen_by_prometheus_and_status(stack:
     three = _env_step_rate(stack)
     stack.figures["env_steps_per_second"] = {"one_worker": {"prometheus": round(one[0]), "status": round(one[1])},
                                              "three_workers": {"prometheus": round(three[0]), "status": round(three[1])}}
-    assert three[0] > 1.2 * one[0] and three[1] > 1.2 * one[1], stack.figures["env_steps_per_second"]
+    assert three[0] > 1.5 * one[0] and three[1] > 1.5 * one[1], stack.figures["env_steps_per_second"]
 
 
 def _learner_updates(stack: Stack) -> float:
