@@ -234,7 +234,8 @@ class CDLModel(nn.Module):
         if not bool(keep.any(dim=1).all()):
             raise ValueError("every output needs at least one input in the mask")
         b = state.shape[0]
-        aggregated = torch.full((self.num_outputs, b, self.cfg.feature_dim), float("-inf"), dtype=torch.float32)
+        aggregated = torch.full((self.num_outputs, b, self.cfg.feature_dim), float("-inf"), dtype=torch.float32,
+                                device=state.device)
         offset = 0
         codec = self.codec
         groups = []
@@ -311,7 +312,8 @@ class CDLModel(nn.Module):
                      parents: torch.Tensor | None, generator: torch.Generator | None = None) -> torch.Tensor:
         """The terms of eq. 3.3 as NLL [J, K, B]: K = full, one uniformly dropped input, causal parents."""
         feats = self.features(state, action)
-        drop = torch.randint(0, self.num_inputs, (self.num_outputs, 1, state.shape[0], 1), generator=generator)
+        drop = torch.randint(0, self.num_inputs, (self.num_outputs, 1, state.shape[0], 1),
+                             generator=generator).to(feats.device)  # drawn on the CPU: the same draws on any device
         terms = list(_MaxAndDropOne.apply(feats, drop))
         if parents is not None:
             keep = self.to_group_order(parents)
@@ -323,8 +325,9 @@ class CDLModel(nn.Module):
         value over all of these samples."""
         same = torch.cat([(state == state[:1]).all(dim=0), (action == action[:1]).all(dim=0).all()[None]])
         slots = [self.layout.slots(j) for j in range(self.num_outputs)] + [1]
-        owner = torch.repeat_interleave(torch.arange(self.num_inputs), torch.tensor(slots))
-        return torch.zeros(self.num_inputs, dtype=torch.long).index_add_(0, owner, (~same).long()) == 0
+        owner = torch.repeat_interleave(torch.arange(self.num_inputs, device=state.device),
+                                        torch.tensor(slots, device=state.device))
+        return torch.zeros(self.num_inputs, dtype=torch.long, device=state.device).index_add_(0, owner, (~same).long()) == 0
 
     def drop_one_gain(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
         """NLL(input i dropped) - NLL(full) per output j, input i and sample: ``[J, I, B]`` nats, in
@@ -346,7 +349,7 @@ class CDLModel(nn.Module):
         likelihood and reads as an edge. On manipulation this made the markers' constant ``z``
         parents of the robot and ``mov`` (false edges, and markers in the action-relevant class).
         ``zero_constant_inputs=False`` returns the network's estimate everywhere (for comparison)."""
-        total = torch.zeros(self.num_outputs, self.num_inputs)
+        total = torch.zeros(self.num_outputs, self.num_inputs, device=state.device)
         for start in range(0, state.shape[0], chunk):
             s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
             total += self.drop_one_gain(s, a, n).sum(dim=-1)
@@ -361,7 +364,7 @@ class CDLModel(nn.Module):
         """Point-wise CMI of every transition (the local graph estimate of chapters 5-6, "pCMI"):
         ``log p(s'_j | s, a) - log p(s'_j | s without i, a)`` per sample, ``[B, J, I]`` nats, graph
         column order. Its mean over samples is :meth:`cmi` (without the constant-input zeroing)."""
-        out = torch.empty(state.shape[0], self.num_outputs, self.num_inputs)
+        out = torch.empty(state.shape[0], self.num_outputs, self.num_inputs, device=state.device)
         for start in range(0, state.shape[0], chunk):
             s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
             out[start : start + chunk] = self.to_graph_order(self.drop_one_gain(s, a, n).permute(2, 0, 1))

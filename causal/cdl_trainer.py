@@ -30,7 +30,7 @@ class CDLTrainer:
         """Parents PA(S^j) for the causal term, from a CMI graph [d_S, d_S + 1]."""
         if adjacency.shape != tuple(self.parents.shape):
             raise ValueError(f"adjacency shape {adjacency.shape} != {tuple(self.parents.shape)}")
-        self.parents = torch.from_numpy(with_self_edges(adjacency))
+        self.parents = torch.from_numpy(with_self_edges(adjacency)).to(self.parents.device)
 
     def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> dict[str, float]:
         """One gradient step on eq. 3.3; returns the mean NLL of each term (nats per factor)."""
@@ -55,6 +55,12 @@ class CDLTrainer:
             stats["nll_causal"] = float(per_term[2])
         return stats
 
+    def to(self, device: torch.device) -> None:
+        """Train on ``device``: the model and the causal term's parents move there (before the first
+        update; the optimiser's moments are made where the parameters are)."""
+        self.model.to(device)
+        self.parents = self.parents.to(device)
+
     @property
     def batch_size(self) -> int:
         return self.cfg.batch_size
@@ -76,6 +82,6 @@ class CDLTrainer:
         state = copy.deepcopy(state)  # the optimiser would otherwise alias the source's moment tensors
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.parents = state["parents"].to(torch.bool)
+        self.parents = state["parents"].to(device=self.parents.device, dtype=torch.bool)
         self.updates = int(state["updates"])
         self.generator.set_state(state["generator"])

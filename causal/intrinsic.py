@@ -76,7 +76,7 @@ def dense_and_causal_nll(model: CDLModel, parents: np.ndarray, state: torch.Tens
     """NLL ``[J, B]`` of every next-state factor under the dense predictor (every input) and the
     causal predictor (inputs ``PA(j)`` only), from one feature computation."""
     feats = model.features(state, action)
-    keep = model.to_group_order(causal_parents(parents))
+    keep = model.to_group_order(causal_parents(parents).to(feats.device))
     dense = feats.amax(dim=1, keepdim=True)
     causal = feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True)
     nll = model.nll(model.predict(torch.cat([dense, causal], dim=1)), state, next_state)
@@ -225,11 +225,13 @@ def make_reward(name: str, eta: float = 1.0) -> IntrinsicReward:
 
 
 def score(reward: IntrinsicReward, model: nn.Module, parents: np.ndarray, state: np.ndarray,
-          action: np.ndarray, next_state: np.ndarray, chunk: int = 1024) -> np.ndarray:
-    """``reward`` on numpy transitions, in chunks of ``chunk`` rows; float32 ``[B]``."""
+          action: np.ndarray, next_state: np.ndarray, chunk: int = 1024,
+          device: torch.device = torch.device("cpu")) -> np.ndarray:
+    """``reward`` on numpy transitions, in chunks of ``chunk`` rows moved to ``device`` (the model's);
+    float32 ``[B]``."""
     out = []
     for start in range(0, len(state), chunk):
         s, a, n = (torch.from_numpy(np.ascontiguousarray(x[start : start + chunk], np.float32))
-                   for x in (state, action, next_state))
-        out.append(reward(model, parents, s, a, n).numpy())
+                   .to(device) for x in (state, action, next_state))
+        out.append(reward(model, parents, s, a, n).cpu().numpy())
     return np.concatenate(out).astype(np.float32) if out else np.zeros(0, np.float32)

@@ -133,6 +133,10 @@ class Method:
     learns_reward: bool = False
     """The trainer's ``update`` also takes the batch's rewards (a causal reward model, chapter 4):
     ``update(state, action, next_state, reward)``."""
+    devices: tuple[str, ...] = ("cpu",)
+    """Torch device types its trainer and estimators run on (``--device``). A method listing ``cuda``
+    keeps every tensor it makes on its inputs' device, its trainer has ``to(device)`` (the model and the
+    trainer's own tensors; batches arrive on that device) and its estimators return CPU arrays."""
 
     def config_json(self, layout: FactorLayout, cfg: Any) -> str:
         return model_config_json(self.name, layout, cfg)

@@ -23,7 +23,7 @@ class CMIGraph:
     name = "cmi"
 
     def scores(self, model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
-        return model.cmi(state, action, next_state).numpy()
+        return model.cmi(state, action, next_state).cpu().numpy()
 
     def threshold(self, model: CDLModel) -> float:
         return model.cfg.cmi_threshold
@@ -35,7 +35,7 @@ class PointwiseCMI:
     name = "pcmi"
 
     def scores(self, model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
-        return model.pointwise_cmi(state, action, next_state).numpy()
+        return model.pointwise_cmi(state, action, next_state).cpu().numpy()
 
     def threshold(self, model: CDLModel) -> float:
         return model.cfg.cmi_threshold
@@ -53,4 +53,5 @@ METHOD = Method(
     intrinsic=("preddiff", "curiosity"),
     rollout_step=cdl_rollout_step,
     resumable=("lr_decay_updates", "lr_final"),
+    devices=("cpu", "cuda"),
 )

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import torch
+
 from causal.factored import FactorLayout
 from causal.method import export_tensors
 from causal.methods import get_method, method_config
@@ -13,6 +15,7 @@ from proto.codec import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
+from services.runtime.device import resolve_device
 
 class DynamicsLearnerCore:
     """Consumes training transitions, trains the method's dynamics model (CDL: eq. 3.3), and gives
@@ -23,6 +26,9 @@ class DynamicsLearnerCore:
         self.method = get_method(cfg.method)
         self.layout = FactorLayout.from_spec(spec)
         self.trainer = self.method.trainer(self.layout, method_config(cfg.models, cfg.method), cfg.seed)
+        self.device = resolve_device(cfg.device, self.method.devices)
+        if "cuda" in self.method.devices:  # a method that runs on the CPU only has no ``to``
+            self.trainer.to(self.device)
         replay = PrioritisedReplay if self.method.prioritised else ReplayBuffer
         self.replay = replay(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.version = 0
@@ -58,15 +64,19 @@ class DynamicsLearnerCore:
         and the rows get the priorities the trainer reports for them (its ``last_priorities``,
         ``None`` to leave them: every row then keeps its first priority, and sampling is uniform)."""
         if not isinstance(self.replay, PrioritisedReplay):
-            stats = self.trainer.update(*self.replay.sample(self.trainer.batch_size, self.method.learns_reward))
+            stats = self.trainer.update(*self._on_device(self.replay.sample(self.trainer.batch_size,
+                                                                            self.method.learns_reward)))
         else:
             index, batch = self.replay.sample_indexed(self.trainer.batch_size, self.method.learns_reward)
-            stats = self.trainer.update(*batch)
+            stats = self.trainer.update(*self._on_device(batch))
             priorities = getattr(self.trainer, "last_priorities", None)
             if priorities is not None:
                 self.replay.update_priorities(index, priorities)
         self.last_stats.update(stats)
         return stats
+
+    def _on_device(self, batch: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+        return batch if self.device.type == "cpu" else tuple(t.to(self.device) for t in batch)
 
     def apply_graph(self, report: GraphReport) -> bool:
         """Give the trainer the evaluator's graph (CDL: PA(S^j) for the causal term); stale, misshapen

@@ -23,6 +23,7 @@ from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.local import LocalGraphScorer
 from services.graph_evaluator.reward import abstraction_metrics, reward_metrics
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
+from services.runtime.device import resolve_device
 
 def constant_factor_indices(spec: EnvSpec) -> tuple[int, ...]:
     """Indices of the spec's factors that never vary (its registry entry's ``constant_factors``; an env
@@ -39,10 +40,11 @@ class GraphEvaluatorCore:
         self.cfg, self.spec = cfg, spec
         self.method = get_method(cfg.method)
         self.kind = self.method.name
+        self.device = resolve_device(cfg.device, self.method.devices)
         self.constant_factors = constant_factor_indices(spec)
         self.heldout = ReplayBuffer(cfg.heldout_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.local = (LocalGraphScorer(spec, self.method.local_graph, self.kind, cfg.local_capacity, cfg.local_samples,
-                                       cfg.local_examples, cfg.seed + 1)
+                                       cfg.local_examples, cfg.seed + 1, self.device)
                       if self.method.local_graph is not None else None)
         """Local-graph scoring, for a method with a local-graph estimator (fed by batches with true local graphs)."""
         self.model: nn.Module | None = None
@@ -75,7 +77,7 @@ class GraphEvaluatorCore:
         if weights.config_json != self.model_config:
             if json.loads(weights.config_json).get("model") != self.kind:
                 raise ValueError(f"weights of method {weights.model!r}, this evaluator runs {self.kind!r}")
-            self.model, self.model_config = model_from_config_json(weights.config_json), weights.config_json
+            self.model, self.model_config = model_from_config_json(weights.config_json).to(self.device), weights.config_json
             if self.method.global_graph is not None:
                 self.threshold = float(self.method.global_graph.threshold(self.model))
             if self.method.reward_graph is not None:
@@ -100,6 +102,7 @@ class GraphEvaluatorCore:
 
     def edge_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
         """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions."""
+        state, action, next_state = (t.to(self.device) for t in (state, action, next_state))
         return np.asarray(self.method.global_graph.scores(self.model, state, action, next_state), dtype=np.float32)
 
     def reward_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
@@ -107,6 +110,7 @@ class GraphEvaluatorCore:
         """The method's reward-graph scores ``[d_S + 1]`` on these transitions (None without a reward graph)."""
         if self.method.reward_graph is None:
             return None
+        state, action, next_state, reward = (t.to(self.device) for t in (state, action, next_state, reward))
         scores = self.method.reward_graph.scores(self.model, state, action, next_state, reward)
         return np.asarray(scores, dtype=np.float32)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import torch
 from torch import nn
 
 from causal.graph_metrics import score_local_graphs, scored_entries
@@ -23,8 +24,8 @@ class LocalGraphScorer:
     """A ring of held-out transitions with their true local graphs, and scoring on a sample of it."""
 
     def __init__(self, spec: EnvSpec, estimator: LocalGraphEstimator, kind: str, capacity: int, samples: int,
-                 examples: int, seed: int) -> None:
-        self.spec, self.estimator, self.kind = spec, estimator, kind
+                 examples: int, seed: int, device: torch.device = torch.device("cpu")) -> None:
+        self.spec, self.estimator, self.kind, self.device = spec, estimator, kind, device
         self.samples, self.examples = samples, examples
         self.ring = LabelledReplay(capacity, spec.state_dim, spec.action_dim, spec.num_factors, seed=seed)
         self.evaluated_version = -1
@@ -45,6 +46,7 @@ class LocalGraphScorer:
         n = self.ring.size if every else min(self.samples, self.ring.size)
         index = np.sort(self.ring.rng.choice(self.ring.size, n, replace=False))
         state, action, next_state, truth = self.ring.rows(index)
+        state, action, next_state = (t.to(self.device) for t in (state, action, next_state))
         scores = np.asarray(self.estimator.scores(model, state, action, next_state), dtype=np.float32)
         threshold = float(self.estimator.threshold(model))
         metrics = score_local_graphs(scores, truth, threshold)

@@ -138,7 +138,7 @@ def _load(core: GraphEvaluatorCore, w: Weights, shell: ServiceShell) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    service_main(SERVICE, GraphEvaluatorConfig, run, argv)
+    service_main(SERVICE, GraphEvaluatorConfig, run, argv, models=True)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ batches (or this service's own ensemble does). No bus."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from torch import nn
 
@@ -13,6 +14,7 @@ from causal.methods import get_method, model_from_config_json
 from proto.codec import ProtocolError, check_fits
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
 from services.intrinsic_reward.config import IntrinsicRewardConfig
+from services.runtime.device import resolve_device
 
 
 class IntrinsicRewardCore:
@@ -31,6 +33,8 @@ class IntrinsicRewardCore:
         if self.reward.source == "dynamics" and cfg.reward not in method.intrinsic:
             raise ValueError(f"reward {cfg.reward!r} reads the dynamics model; method {method.name!r} serves "
                              f"{', '.join(method.intrinsic) or 'none'}")
+        self.device = resolve_device(cfg.device, method.devices if self.reward.source == "dynamics" else ("cpu",))
+        """Where the dynamics model scores batches (the ensemble of an ``ensemble`` reward stays on the CPU)."""
         self.model: nn.Module | None = None
         self.model_config = ""
         self.weights_version = 0
@@ -48,7 +52,7 @@ class IntrinsicRewardCore:
         if weights.config_json != self.model_config:
             if weights.model != self.cfg.method:
                 raise ValueError(f"weights of method {weights.model!r}, the run's is {self.cfg.method!r}")
-            model = model_from_config_json(weights.config_json)
+            model = model_from_config_json(weights.config_json).to(self.device)
             if model.layout.state_dim != self.spec.state_dim or model.layout.num_factors != self.spec.num_factors:
                 raise ValueError(f"weights v{weights.version} do not fit the EnvSpec")
             self.model, self.model_config = model, weights.config_json
@@ -75,7 +79,8 @@ class IntrinsicRewardCore:
         if model is None:
             rewards = np.zeros(len(batch), np.float32)
         else:
-            rewards = score(self.reward, model, self.parents, batch.state, batch.action, batch.next_state)
+            rewards = score(self.reward, model, self.parents, batch.state, batch.action, batch.next_state,
+                            device=self.device if model is self.model else torch.device("cpu"))
         if not np.isfinite(rewards).all():
             raise ProtocolError("non_finite", f"intrinsic rewards of {batch.worker_id}/{batch.seq}")
         version = self.ensemble.updates if self.ensemble is not None else self.weights_version

@@ -97,7 +97,7 @@ def _config_path(cfg: IntrinsicRewardConfig) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    service_main(SERVICE, IntrinsicRewardConfig, run, argv)
+    service_main(SERVICE, IntrinsicRewardConfig, run, argv, models=True)
 
 
 if __name__ == "__main__":

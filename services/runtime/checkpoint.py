@@ -1,4 +1,5 @@
-"""Checkpoints: atomic writes, and loads that never unpickle arbitrary objects (weights_only=True)."""
+"""Checkpoints: atomic writes of CPU tensors, and loads that never unpickle arbitrary objects
+(weights_only=True) and put every tensor on the CPU (a checkpoint written on a GPU loads without one)."""
 from __future__ import annotations
 
 import json
@@ -45,7 +46,7 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     os.close(fd)
     try:
-        torch.save(state, tmp)
+        torch.save(on_cpu(state), tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -56,4 +57,16 @@ def load_checkpoint(path: Path) -> dict[str, Any] | None:
     """The saved state, or None when there is none. Tensors, numbers, strings and containers only."""
     if not path.exists():
         return None
-    return torch.load(path, weights_only=True)
+    return torch.load(path, weights_only=True, map_location="cpu")
+
+
+def on_cpu(value: Any) -> Any:
+    """``value`` with every tensor in it (through dicts, lists and tuples) on the CPU; CPU tensors are
+    returned as they are, not copied."""
+    if isinstance(value, torch.Tensor):
+        return value.cpu()
+    if isinstance(value, dict):
+        return {key: on_cpu(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(on_cpu(item) for item in value)
+    return value

@@ -48,6 +48,9 @@ class RunSettings:
     heldout_fraction: float = doc(0.1, "fraction of episodes held out from training, for graph estimation "
                                        "(the learner and the evaluator split episodes the same way)")
     checkpoint_every_s: float = doc(30.0, "seconds between service checkpoints")
+    device: str = doc("auto", "where the processes that train or evaluate a model run them: auto (cuda if torch "
+                              "sees one and the method runs there, else cpu), cpu, or cuda (refused where there "
+                              "is none); weights and checkpoints are device-independent", choices=("auto", "cpu", "cuda"))
 
     def __post_init__(self) -> None:
         check_choices(self)

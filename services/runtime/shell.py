@@ -209,12 +209,32 @@ def setup_logging(service: str) -> None:
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {service} %(levelname)s %(name)s: %(message)s")
 
 
-def service_main(service: str, config_cls: type, run: Callable[[Any], None], argv: list[str] | None) -> None:
-    """The entry point of every service process: logging, one torch thread, config from env and flags."""
+def service_main(service: str, config_cls: type, run: Callable[[Any], None], argv: list[str] | None,
+                 models: bool = False) -> None:
+    """The entry point of every service process: logging, one torch thread, config from env and flags.
+
+    A service that trains or evaluates the method's ``models`` checks ``--device`` first: ``cuda``
+    where there is none exits with ``CONFIG_ERROR_EXIT`` before the bus is opened."""
     setup_logging(service)
     import torch
     torch.set_num_threads(1)
-    run(parse_service_config(config_cls, argv))
+    cfg = parse_service_config(config_cls, argv)
+    if models:
+        check_device(service, cfg)
+    run(cfg)
+
+
+def check_device(service: str, cfg: Any) -> None:
+    """Exit with ``CONFIG_ERROR_EXIT`` if ``cfg.device`` cannot be used here by ``cfg.method``."""
+    from causal.methods import get_method
+    from services.runtime.device import resolve_device
+
+    try:
+        device = resolve_device(cfg.device, get_method(cfg.method).devices)
+    except ValueError as exc:
+        log.error("%s: %s", service, exc)
+        sys.exit(CONFIG_ERROR_EXIT)
+    log.info("%s runs its models on %s (--device %s)", service, device, cfg.device)
 
 
 def parse_service_config(config_cls: type, argv: list[str] | None) -> Any:

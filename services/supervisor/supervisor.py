@@ -21,6 +21,7 @@ import threading
 import time
 from pathlib import Path
 
+from causal.methods import get_method
 from envs.registry import env_entry
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
@@ -28,6 +29,7 @@ from proto.messages import Control, GraphReport, LocalGraphReport, ServiceStats
 from services.bus.router import start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from services.runtime.config import to_environ, write_config
+from services.runtime.device import resolve_device
 from services.supervisor.analysis import RunRecord, analyse, git_revision
 from services.supervisor.config import RunConfig
 from services.supervisor.processes import FatalServiceError, ManagedProcess, leftovers, stop_all
@@ -76,8 +78,10 @@ class Supervisor:
         return proc
 
     def preflight(self) -> None:
-        """``ValueError`` if the run cannot start here: a port it needs is taken, or processes of an
-        earlier supervisor of this run directory still run."""
+        """``ValueError`` if the run cannot start here: ``--device cuda`` without a CUDA device (or with a
+        method that runs on the CPU only), a port it needs is taken, or processes of an earlier
+        supervisor of this run directory still run."""
+        resolve_device(self.cfg.device, get_method(self.cfg.method).devices)
         running = leftovers(self.run_dir)
         if running:
             raise ValueError(f"{self.run_dir} is in use: {', '.join(running)} still run; stop them "
