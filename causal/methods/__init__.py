@@ -23,6 +23,7 @@ METHODS: dict[str, str] = {
     "modular": "causal.methods.dense:MODULAR",
     "monolithic": "causal.methods.dense:MONOLITHIC",
     "cbm": "causal.methods.cbm",
+    "skild": "causal.methods.skild",
 }
 """Registered methods: name -> ``module`` defining ``METHOD`` (or ``module:NAME``)."""
 

@@ -1,0 +1,100 @@
+"""Fig. 6.4 (chapter 6): the share of random-skill episodes that induce each interaction, SkiLD vs DIAYN.
+
+For each seed: reward-free pre-training of SkiLD (true local graphs pooled to objects, the chapter's
+ablation) and of DIAYN on the same DQN machinery, each for ``--env-steps`` env steps; then
+``--episodes`` (500) episodes of random skills per method (a target drawn uniformly from the
+history's targets, ``b`` uniform, every L = 20 steps; DIAYN: a uniform skill every 20 steps), and
+the same number of episodes of uniformly random primitives for reference. Reported: per
+multi-object graph row (an object depending on another object, the interactions Fig. 6.4 shows), the
+share of episodes that induce it at least once, mean and standard deviation over seeds, and the
+mean over those rows. One thread; the budget (env steps, updates, wall seconds) is printed.
+
+    python -m benchmarks.skild_coverage [--env installing-printer] [--env-steps 100000] [--seeds 0 1 2]
+        [--episodes 500] [--episode-length 0] [--out runs/skild-coverage]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from causal.skild import SkiLDConfig, object_names
+from causal.skild_agent import SkillLearnerConfig
+from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain
+
+METHODS = ("skild", "diayn", "random")
+
+
+def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed: int) -> dict[str, dict]:
+    """Coverage per method for one seed: ``{method: {"rows": {(factor, key): share}, "seconds": ...}}``."""
+    out: dict[str, dict] = {}
+    run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length)
+    for mode in ("skild", "diayn"):
+        start = time.process_time()
+        agent, _ = pretrain(run, SkiLDConfig(), SkillLearnerConfig(), mode=mode, seed=seed)
+        trained = time.process_time() - start
+        rows = coverage(agent, env, episodes, episode_length, seed=10_000 + seed, skill_steps=agent.cfg.skill_steps)
+        out[mode] = {"rows": rows, "train_cpu_s": trained, "updates": agent.updates,
+                     "targets": len(agent.history.targets)}
+        print(f"seed {seed} {mode}: {trained:.0f} CPU s, {agent.updates} updates, "
+              f"{len(agent.history.targets)} targets", flush=True)
+    out["random"] = {"rows": coverage(None, env, episodes, episode_length, seed=10_000 + seed)}
+    return out
+
+
+def table(results: list[dict[str, dict]], objects: tuple[str, ...]) -> list[dict]:
+    """One line per multi-object row seen by any method: its share per method, mean and std over seeds."""
+    width = len(objects) + 1
+    keys = sorted({k for r in results for m in METHODS for k in r[m]["rows"] if multi_object(*k, width)})
+    lines = []
+    for key in keys:
+        line: dict = {"row": describe_row(*key, objects)}
+        for m in METHODS:
+            shares = np.array([r[m]["rows"].get(key, 0.0) for r in results])
+            line[m] = (float(shares.mean()), float(shares.std()))
+        lines.append(line)
+    return sorted(lines, key=lambda line: line["random"][0])
+
+
+def markdown(lines: list[dict]) -> str:
+    head = "| interaction (object-level row) | SkiLD | DIAYN | random primitives |\n|---|---|---|---|\n"
+    body = "".join(f"| {line['row']} | " + " | ".join(f"{line[m][0]:.2f} ± {line[m][1]:.2f}" for m in METHODS)
+                   + " |\n" for line in lines)
+    mean = {m: np.mean([line[m][0] for line in lines]) if lines else 0.0 for m in METHODS}
+    return head + body + "| **mean over these rows** | " + " | ".join(f"{mean[m]:.2f}" for m in METHODS) + " |\n"
+
+
+def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_length: int, out: Path) -> None:
+    torch.set_num_threads(1)
+    out.mkdir(parents=True, exist_ok=True)
+    from envs.registry import make_env
+    objects = object_names(make_env(env).env_spec().factor_objects)
+    wall = time.time()
+    results = [one_seed(env, env_steps, episodes, episode_length, s) for s in seeds]
+    lines = table(results, objects)
+    text = markdown(lines)
+    budget = {m: {"train_cpu_s": [r[m]["train_cpu_s"] for r in results], "updates": [r[m]["updates"] for r in results],
+                  "targets": [r[m]["targets"] for r in results]} for m in ("skild", "diayn")}
+    (out / f"{env}.json").write_text(json.dumps({"env": env, "env_steps": env_steps, "seeds": seeds,
+                                                 "episodes": episodes, "episode_length": episode_length,
+                                                 "wall_s": time.time() - wall, "budget": budget, "table": lines},
+                                                indent=1))
+    (out / f"{env}.md").write_text(text)
+    print(text)
+    print(f"budget: {env_steps} env steps per method and seed; {budget}; wall {time.time() - wall:.0f} s")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="installing-printer")
+    parser.add_argument("--env-steps", type=int, default=100_000)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--episodes", type=int, default=500)
+    parser.add_argument("--episode-length", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path("runs/skild-coverage"))
+    args = parser.parse_args()
+    main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out)

@@ -1,0 +1,251 @@
+"""SkiLD's learners (ch. 6.2.2-6.2.3): the factorised skill policy and the graph-selection policy.
+
+- :class:`SkillQNetwork`: the low level. The authors train one Rainbow DQN per factor; we train one
+  double DQN with a shared trunk and **one Q-head per factor** (the chapter's factorised low level:
+  the target's factor picks the head), inputs the state's one-hots, the target ``G`` (factor one-hot
+  and row bits) and ``b`` (one-hot). A Q-learner, because hindsight relabelling needs an off-policy
+  learner (a relabelled sample was collected under another skill); plain double DQN with
+  epsilon-greedy, because Rainbow's extras (distributional atoms, noisy nets, prioritised n-step
+  replay) cost CPU time the runs here do not have, and none of them is what SkiLD is about.
+- :class:`GraphSelector`: the high level. A masked categorical policy over the target slots of the
+  :class:`~causal.skild.GraphHistory` with a value baseline, updated by one-step policy gradient on
+  eq. 6.1's novelty summed over the ``L`` steps of the skill it picked (the authors: masked PPO
+  across decisions).
+- :class:`SkiLDAgent`: both, the discriminator and the replay, with the update of Algorithm 7
+  (lines 13-19). ``mode="diayn"`` is the DIAYN baseline on the same machinery: no graph (one fixed
+  empty target), reward ``log q(b | s') + log K``, no relabelling.
+
+One thread, batched tensors; the collection loop is :mod:`causal.skild_pretrain`.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from causal.skild import (DiversityDiscriminator, GraphHistory, SkiLDConfig, graph_matches, hindsight_relabel,
+                          skill_reward, target_features)
+from proto.settings import doc
+
+MODES = ("skild", "diayn")
+
+
+@dataclass(frozen=True)
+class SkillLearnerConfig:
+    """The low-level DQN, the high-level selector and their budgets (pre-training, ch. 6.2)."""
+
+    gamma: float = doc(0.9, "discount of the skill policy (the authors' Rainbow: 0.9)")
+    lr: float = doc(5e-4, "Adam learning rate of the skill Q-network")
+    hidden: int = doc(128, "hidden width of the skill Q-network's trunk (two layers)")
+    batch_size: int = doc(128, "replayed transitions per update")
+    replay_capacity: int = doc(200_000, "transitions the skill replay holds")
+    target_every: int = doc(250, "updates between copies of the online Q-network to the target one")
+    learning_starts: int = doc(2_000, "transitions collected before the first update")
+    eps_start: float = doc(1.0, "epsilon-greedy exploration at the start")
+    eps_end: float = doc(0.05, "epsilon-greedy exploration after eps_decay_steps")
+    eps_decay_steps: int = doc(40_000, "env steps over which epsilon decays linearly")
+    selector_lr: float = doc(1e-3, "Adam learning rate of the graph-selection policy")
+    selector_entropy: float = doc(0.01, "entropy bonus of the graph-selection policy")
+    selector_batch: int = doc(64, "finished skill segments per graph-selection update")
+    diayn_k: int = doc(8, "skills of the DIAYN baseline (mode diayn)")
+
+
+def one_hot_states(states: np.ndarray, sizes: tuple[int, ...]) -> torch.Tensor:
+    """Categorical states ``[B, d_S]`` (category indices) -> concatenated one-hots ``[B, sum(sizes)]``."""
+    offsets = torch.as_tensor(np.concatenate([[0], np.cumsum(sizes)[:-1]]), dtype=torch.long)
+    index = torch.as_tensor(np.asarray(states), dtype=torch.long) + offsets
+    out = torch.zeros(index.shape[0], int(sum(sizes)))
+    return out.scatter_(1, index, 1.0)
+
+
+class SkillQNetwork(nn.Module):
+    """``Q(s, G, b, .)``: a shared trunk, one head of ``|A|`` values per factor (the target's picks it)."""
+
+    def __init__(self, state_features: int, num_factors: int, k: int, actions: int, hidden: int) -> None:
+        super().__init__()
+        self.num_factors, self.k, self.actions = num_factors, k, actions
+        self.trunk = nn.Sequential(nn.Linear(state_features + 2 * num_factors + 1 + k, hidden), nn.ReLU(),
+                                   nn.Linear(hidden, hidden), nn.ReLU())
+        self.heads = nn.Linear(hidden, num_factors * actions)
+
+    def forward(self, features: torch.Tensor, factor: torch.Tensor, row: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([features, target_features(factor, row, self.num_factors), F.one_hot(b, self.k).float()], 1)
+        q = self.heads(self.trunk(x)).view(-1, self.num_factors, self.actions)
+        return q[torch.arange(len(factor)), factor]
+
+
+class GraphSelector(nn.Module):
+    """``pi_G(slot | s)`` over the history's target slots (the slots not yet filled masked), and ``V(s)``."""
+
+    def __init__(self, state_features: int, slots: int, hidden: int = 64) -> None:
+        super().__init__()
+        self.trunk = nn.Sequential(nn.Linear(state_features, hidden), nn.ReLU())
+        self.logits, self.value = nn.Linear(hidden, slots), nn.Linear(hidden, 1)
+
+    def forward(self, features: torch.Tensor, filled: int) -> tuple[torch.distributions.Categorical, torch.Tensor]:
+        h = self.trunk(features)
+        logits = self.logits(h)
+        logits[:, filled:] = -1e9
+        return torch.distributions.Categorical(logits=logits), self.value(h).squeeze(1)
+
+
+class SkillReplay:
+    """A ring of skill transitions with their induced (object-level) graphs and skill labels."""
+
+    def __init__(self, capacity: int, state_dim: int, num_factors: int) -> None:
+        n = num_factors
+        self.capacity, self.size, self.next = capacity, 0, 0
+        self.fields = {
+            "state": np.zeros((capacity, state_dim), np.int16), "action": np.zeros(capacity, np.int64),
+            "next_state": np.zeros((capacity, state_dim), np.int16), "terminated": np.zeros(capacity, bool),
+            "induced": np.zeros((capacity, n, n + 1), bool), "factor": np.zeros(capacity, np.int64),
+            "row": np.zeros((capacity, n + 1), bool), "b": np.zeros(capacity, np.int64),
+            "counts": np.zeros((capacity, n), np.int64),
+        }
+
+    def add(self, **rows: np.ndarray) -> None:
+        count = len(rows["action"])
+        index = (self.next + np.arange(count)) % self.capacity
+        for name, value in rows.items():
+            self.fields[name][index] = value
+        self.next = (self.next + count) % self.capacity
+        self.size = min(self.size + count, self.capacity)
+
+    def sample(self, batch: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        index = rng.integers(0, self.size, batch)
+        return {name: value[index] for name, value in self.fields.items()}
+
+
+class SkiLDAgent:
+    """The skill policy, the graph selector, the discriminator and the graph history of one run."""
+
+    def __init__(self, sizes: tuple[int, ...], num_factors: int, actions: int, cfg: SkiLDConfig,
+                 learner: SkillLearnerConfig, mode: str = "skild", seed: int = 0) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        torch.manual_seed(seed)
+        self.sizes, self.n, self.actions, self.cfg, self.learner, self.mode = sizes, num_factors, actions, cfg, learner, mode
+        self.k = cfg.diversity_k if mode == "skild" else learner.diayn_k
+        self.rng = np.random.default_rng(seed)
+        features = int(sum(sizes))
+        self.q = SkillQNetwork(features, num_factors, self.k, actions, learner.hidden)
+        self.q_target = copy.deepcopy(self.q)
+        self.q_opt = torch.optim.Adam(self.q.parameters(), lr=learner.lr)
+        self.disc = DiversityDiscriminator(features, num_factors, self.k, cfg.discriminator_hidden)
+        self.disc_opt = torch.optim.Adam(self.disc.parameters(), lr=cfg.discriminator_lr)
+        self.selector = GraphSelector(features, cfg.max_targets)
+        self.selector_opt = torch.optim.Adam(self.selector.parameters(), lr=learner.selector_lr)
+        self.history = GraphHistory(num_factors, cfg.eligible_after, cfg.max_targets)
+        self.replay = SkillReplay(learner.replay_capacity, len(sizes), num_factors)
+        self.updates = 0
+
+    def features(self, states: np.ndarray) -> torch.Tensor:
+        return one_hot_states(states, self.sizes)
+
+    # ---------------------------------------------------------------- acting
+
+    def act(self, states: np.ndarray, factor: np.ndarray, row: np.ndarray, b: np.ndarray, epsilon: float) -> np.ndarray:
+        """Epsilon-greedy primitive actions of the skills ``(G, b)`` per env."""
+        with torch.no_grad():
+            q = self.q(self.features(states), torch.as_tensor(factor), torch.as_tensor(row), torch.as_tensor(b))
+        greedy = q.argmax(1).numpy()
+        explore = self.rng.random(len(greedy)) < epsilon
+        return np.where(explore, self.rng.integers(0, self.actions, len(greedy)), greedy)
+
+    def select(self, states: np.ndarray, uniform: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """New skills for these envs: ``(slot, factor, row, b)``; ``slot`` -1 while no target is eligible
+        (and in DIAYN mode: one empty target). ``uniform``: targets uniformly (random skills)."""
+        count = len(states)
+        b = self.rng.integers(0, self.k, count)
+        filled = len(self.history.targets)
+        if self.mode == "diayn" or filled == 0:
+            return np.full(count, -1), np.zeros(count, np.int64), np.zeros((count, self.n + 1), bool), b
+        if uniform:
+            slot = self.rng.integers(0, filled, count)
+        else:
+            with torch.no_grad():
+                dist, _ = self.selector(self.features(states), filled)
+                slot = dist.sample().numpy()
+        factors, rows = self.history.target_arrays(self.n + 1)
+        return slot, factors[slot], rows[slot], b
+
+    # ---------------------------------------------------------------- learning
+
+    def observe(self, **rows: np.ndarray) -> np.ndarray:
+        """Record transitions (``state, action, next_state, terminated, induced, factor, row, b``);
+        update the graph history; return each transition's novelty counts ``[B, N]`` (after the update)."""
+        if self.mode == "skild":
+            self.history.update(rows["induced"])
+        counts = self.history.counts(rows["induced"])
+        self.replay.add(counts=counts, **rows)
+        return counts
+
+    def rewards(self, batch: dict[str, np.ndarray], features: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+        """Hindsight-relabelled labels, their log q and eq. 6.2's reward (DIAYN: ``log q + log K``)."""
+        factor, row = batch["factor"], batch["row"]
+        if self.mode == "skild":
+            factor, row, _ = hindsight_relabel(batch["induced"], factor, row, batch["counts"],
+                                               self.cfg.relabel_fraction, self.rng)
+        with torch.no_grad():
+            log_q = self.disc.log_prob(features, torch.as_tensor(factor), torch.as_tensor(row),
+                                       torch.as_tensor(batch["b"])).numpy()
+        if self.mode == "diayn":
+            reward = (log_q + math.log(self.k)).astype(np.float32)
+        else:
+            reward = skill_reward(batch["induced"], factor, row, log_q, self.cfg.diversity_weight)
+        return reward, {"factor": factor, "row": row}, log_q
+
+    def update(self) -> dict[str, float]:
+        """One step of Algorithm 7's lines 13-19 on a replayed batch (discriminator, then skill Q)."""
+        batch = self.replay.sample(self.learner.batch_size, self.rng)
+        s, s2 = self.features(batch["state"]), self.features(batch["next_state"])
+        reward, labels, _ = self.rewards(batch, s2)
+        factor, row, b = (torch.as_tensor(labels["factor"]), torch.as_tensor(labels["row"]),
+                          torch.as_tensor(batch["b"]))
+        disc_loss = self._update_discriminator(s2, factor, row, b, batch, labels)
+        with torch.no_grad():
+            best = self.q(s2, factor, row, b).argmax(1, keepdim=True)
+            bootstrap = self.q_target(s2, factor, row, b).gather(1, best).squeeze(1)
+            target = torch.as_tensor(reward) + self.learner.gamma * bootstrap * torch.as_tensor(~batch["terminated"])
+        q = self.q(s, factor, row, b).gather(1, torch.as_tensor(batch["action"])[:, None]).squeeze(1)
+        loss = F.smooth_l1_loss(q, target)
+        self.q_opt.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.q.parameters(), 10.0)
+        self.q_opt.step()
+        self.updates += 1
+        if self.updates % self.learner.target_every == 0:
+            self.q_target.load_state_dict(self.q.state_dict())
+        return {"q_loss": float(loss.detach()), "disc_loss": disc_loss, "reward": float(reward.mean())}
+
+    def _update_discriminator(self, s2: torch.Tensor, factor: torch.Tensor, row: torch.Tensor, b: torch.Tensor,
+                              batch: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> float:
+        """Cross-entropy of ``b`` on the states where the (relabelled) target was induced."""
+        if self.mode == "skild":
+            keep = torch.as_tensor(graph_matches(batch["induced"], labels["factor"], labels["row"]))
+            if not keep.any():
+                return float("nan")
+            s2, factor, row, b = s2[keep], factor[keep], row[keep], b[keep]
+        loss = self.disc.loss(s2, factor, row, b)
+        self.disc_opt.zero_grad()
+        loss.backward()
+        self.disc_opt.step()
+        return float(loss.detach())
+
+    def update_selector(self, features: torch.Tensor, slots: np.ndarray, returns: np.ndarray) -> dict[str, float]:
+        """One policy-gradient step of the graph selector on finished skill segments (eq. 6.1 returns)."""
+        dist, value = self.selector(features, len(self.history.targets))
+        ret = torch.as_tensor(returns, dtype=torch.float32)
+        advantage = ret - value.detach()
+        logp = dist.log_prob(torch.as_tensor(slots))
+        loss = -(advantage * logp).mean() + 0.5 * (value - ret).square().mean() \
+            - self.learner.selector_entropy * dist.entropy().mean()
+        self.selector_opt.zero_grad()
+        loss.backward()
+        self.selector_opt.step()
+        return {"selector_loss": float(loss.detach()), "selector_return": float(ret.mean())}

@@ -1,0 +1,191 @@
+"""SkiLD's reward-free pre-training loop (Algorithm 7) and the random-skill coverage of Fig. 6.4.
+
+In one process on a list of household envs: the graph selector picks a target every ``L`` steps
+(or when an episode ends), the skill policy acts epsilon-greedily, each transition's induced graph
+is the env's true local graph pooled to objects (the chapter's ablation "with ground-truth graphs";
+``graphs="true"``), the history, the discriminator and both policies learn from it.
+
+:func:`coverage` runs a trained agent for ``episodes`` episodes with random skills (a target drawn
+uniformly from the history's targets, ``b`` uniform, every ``L`` steps) and counts the share of
+episodes that induce each object-level graph row at least once (Fig. 6.4); ``agent=None`` is
+uniformly random primitives, for reference.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from causal.skild import SkiLDConfig, key_rows, novelty_reward, object_graphs, object_names, row_keys
+from causal.skild_agent import SkillLearnerConfig, SkiLDAgent
+from envs.registry import make_env
+from proto.settings import doc
+
+GRAPH_SOURCES = ("true",)
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    """What a pre-training run collects, on which env, with which induced graphs."""
+
+    env: str = doc("installing-printer", "household env to pre-train on")
+    env_steps: int = doc(100_000, "env steps of reward-free pre-training (all envs together)")
+    num_envs: int = doc(16, "envs stepped together (one batched forward pass per step)")
+    episode_length: int = doc(0, "steps per episode (0: the env's default)")
+    updates_per_step: int = doc(1, "skill-policy updates per batched env step (num_envs transitions)")
+    graphs: str = doc("true", "induced graphs from: true (the env's local graphs, the chapter's ablation)")
+
+    def __post_init__(self) -> None:
+        if self.graphs not in GRAPH_SOURCES:
+            raise ValueError(f"graphs must be one of {GRAPH_SOURCES}, got {self.graphs!r}")
+        if self.env_steps < 1 or self.num_envs < 1 or self.updates_per_step < 0:
+            raise ValueError("env_steps and num_envs must be >= 1, updates_per_step >= 0")
+
+
+class HouseholdBatch:
+    """``num`` envs stepped together, reset when an episode ends; states and true local graphs."""
+
+    def __init__(self, env: str, num: int, episode_length: int, seed: int) -> None:
+        kwargs: dict[str, Any] = {"episode_length": episode_length} if episode_length else {}
+        self.envs = [make_env(env, **kwargs) for _ in range(num)]
+        spec = self.envs[0].env_spec()
+        self.sizes, self.objects = tuple(spec.factor_sizes), tuple(spec.factor_objects)
+        self.actions = spec.action_size
+        self.seed = seed
+        self.episodes = 0
+        self.states = np.stack([self._reset(e) for e in self.envs])
+
+    def _reset(self, env: Any) -> np.ndarray:
+        self.episodes += 1
+        return env.reset(seed=self.seed * 1_000_003 + self.episodes)[0].astype(np.int64)
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(next states, local graphs [B, d, d+1], terminated, ended, states after resets)``."""
+        out = [env.step(int(a)) for env, a in zip(self.envs, actions)]
+        nxt = np.stack([o[0] for o in out]).astype(np.int64)
+        graphs = np.stack([o[4]["local_graph"] for o in out])
+        terminated = np.array([o[2] for o in out])
+        ended = terminated | np.array([o[3] for o in out])
+        after = nxt.copy()
+        for i in np.flatnonzero(ended):
+            after[i] = self._reset(self.envs[i])
+        self.states = after
+        return nxt, graphs, terminated, ended, after
+
+
+def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig, mode: str = "skild",
+             seed: int = 0, log: Callable[[dict[str, float]], None] | None = None) -> tuple[SkiLDAgent, HouseholdBatch]:
+    """Algorithm 7 for ``run.env_steps`` steps; returns the agent and its envs."""
+    torch.manual_seed(seed)
+    envs = HouseholdBatch(run.env, run.num_envs, run.episode_length, seed)
+    agent = SkiLDAgent(envs.sizes, len(object_names(envs.objects)), envs.actions, cfg, learner, mode, seed)
+    skills = _Skills(agent, envs.states)
+    stats: dict[str, float] = {}
+    for step in range(run.env_steps // run.num_envs):
+        done_steps = step * run.num_envs
+        epsilon = max(learner.eps_end, learner.eps_start - (learner.eps_start - learner.eps_end)
+                      * done_steps / max(learner.eps_decay_steps, 1))
+        states = envs.states
+        actions = agent.act(states, skills.factor, skills.row, skills.b, epsilon)
+        nxt, graphs, terminated, ended, after = envs.step(actions)
+        induced = object_graphs(graphs, envs.objects)
+        counts = agent.observe(state=states, action=actions, next_state=nxt, terminated=terminated,
+                               induced=induced, factor=skills.factor, row=skills.row, b=skills.b)
+        skills.advance(novelty_reward(counts), ended, after)
+        if agent.replay.size >= learner.learning_starts:
+            for _ in range(run.updates_per_step):
+                stats = agent.update()
+        stats.update(skills.maybe_update_selector())
+        if log is not None and step % 500 == 0:
+            log({"env_steps": float(done_steps), "epsilon": epsilon, "targets": float(len(agent.history.targets)),
+                 "seen": float(agent.history.seen()), **stats})
+    return agent, envs
+
+
+class _Skills:
+    """The running skill of each env, its remaining steps, and the finished segments' novelty returns."""
+
+    def __init__(self, agent: SkiLDAgent, states: np.ndarray) -> None:
+        self.agent = agent
+        self.left = np.zeros(len(states), np.int64)
+        self.slot, self.factor, self.row, self.b = agent.select(states)
+        self.start = states.copy()
+        self.left[:] = agent.cfg.skill_steps
+        self.returns = np.zeros(len(states))
+        self.finished: list[tuple[np.ndarray, int, float]] = []
+
+    def advance(self, novelty: np.ndarray, ended: np.ndarray, states: np.ndarray) -> None:
+        self.returns += novelty
+        self.left -= 1
+        renew = np.flatnonzero((self.left <= 0) | ended)
+        if not len(renew):
+            return
+        for i in renew:
+            if self.slot[i] >= 0:
+                self.finished.append((self.start[i].copy(), int(self.slot[i]), float(self.returns[i])))
+        slot, factor, row, b = self.agent.select(states[renew])
+        self.slot[renew], self.factor[renew], self.row[renew], self.b[renew] = slot, factor, row, b
+        self.start[renew], self.returns[renew] = states[renew], 0.0
+        self.left[renew] = self.agent.cfg.skill_steps
+
+    def maybe_update_selector(self) -> dict[str, float]:
+        if len(self.finished) < self.agent.learner.selector_batch:
+            return {}
+        starts, slots, returns = zip(*self.finished)
+        self.finished = []
+        return self.agent.update_selector(self.agent.features(np.stack(starts)), np.array(slots), np.array(returns))
+
+
+def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: int, seed: int,
+             skill_steps: int = 20, num_envs: int = 20, epsilon: float = 0.05) -> dict[tuple[int, int], float]:
+    """Share of ``episodes`` that induce each ``(factor, row key)`` at least once, under random skills
+    (greedy skill policy with ``epsilon``) or, with ``agent=None``, random primitives."""
+    envs = HouseholdBatch(env, num_envs, episode_length, seed)
+    n = len(object_names(envs.objects))
+    rng = np.random.default_rng(seed)
+    seen: list[set[tuple[int, int]]] = [set() for _ in range(num_envs)]
+    finished: list[set[tuple[int, int]]] = []
+    skills = agent.select(envs.states, uniform=True) if agent else None
+    left = np.full(num_envs, skill_steps)
+    while len(finished) < episodes:
+        states = envs.states
+        if agent is None:
+            actions = rng.integers(0, envs.actions, num_envs)
+        else:
+            actions = agent.act(states, skills[1], skills[2], skills[3], epsilon)
+        _, graphs, _, ended, after = envs.step(actions)
+        keys = row_keys(object_graphs(graphs, envs.objects))
+        for i in range(num_envs):
+            seen[i].update(zip(range(n), keys[i].tolist()))
+        left -= 1
+        renew = np.flatnonzero((left <= 0) | ended)
+        if agent is not None and len(renew):
+            fresh = agent.select(after[renew], uniform=True)
+            for part, new in zip(skills, fresh):
+                part[renew] = new
+        left[renew] = skill_steps
+        for i in np.flatnonzero(ended):
+            finished.append(seen[i])
+            seen[i] = set()
+    counts: dict[tuple[int, int], int] = {}
+    for episode in finished[:episodes]:
+        for key in episode:
+            counts[key] = counts.get(key, 0) + 1
+    return {key: c / episodes for key, c in counts.items()}
+
+
+def describe_row(factor: int, key: int, objects: tuple[str, ...]) -> str:
+    """``"agent, printer, action -> printer"``: a graph row in the words of Fig. 6.4."""
+    names = (*objects, "action")
+    parents = [names[i] for i in np.flatnonzero(key_rows(np.array(key), len(names)))]
+    return f"{', '.join(parents)} -> {objects[factor]}"
+
+
+def multi_object(factor: int, key: int, width: int) -> bool:
+    """Whether a row has a parent object other than the factor itself (an interaction)."""
+    parents = np.flatnonzero(key_rows(np.array(key), width))
+    return any(p != factor and p != width - 1 for p in parents)
+
+
