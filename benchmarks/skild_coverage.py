@@ -10,7 +10,11 @@ share of episodes that induce it at least once, mean and standard deviation over
 mean over those rows. One thread; the budget (env steps, updates, wall seconds) is printed.
 
     python -m benchmarks.skild_coverage [--env installing-printer] [--env-steps 100000] [--seeds 0 1 2]
-        [--episodes 500] [--episode-length 0] [--out runs/skild-coverage]
+        [--episodes 500] [--episode-length 0] [--out runs/skild-coverage] [--graphs true|pcmi]
+        [--methods skild diayn random]
+
+``--graphs pcmi`` pre-trains SkiLD on the point-wise CMI graphs of a CDL model trained on the run's
+own transitions instead of the true ones (the output is then ``<env>-pcmi.json``).
 """
 from __future__ import annotations
 
@@ -27,13 +31,15 @@ from causal.skild_agent import SkillLearnerConfig
 from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain
 
 METHODS = ("skild", "diayn", "random")
+TITLES = {"skild": "SkiLD", "diayn": "DIAYN", "random": "random primitives"}
 
 
-def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed: int) -> dict[str, dict]:
-    """Coverage per method for one seed: ``{method: {"rows": {(factor, key): share}, "seconds": ...}}``."""
+def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed: int, graphs: str,
+             methods: tuple[str, ...]) -> dict[str, dict]:
+    """Coverage per method for one seed: ``{method: {"rows": {(factor, key): share}, "train_cpu_s": ...}}``."""
     out: dict[str, dict] = {}
-    run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length)
-    for mode in ("skild", "diayn"):
+    run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length, graphs=graphs)
+    for mode in (m for m in ("skild", "diayn") if m in methods):
         start = time.process_time()
         agent, _ = pretrain(run, SkiLDConfig(), SkillLearnerConfig(), mode=mode, seed=seed)
         trained = time.process_time() - start
@@ -42,48 +48,53 @@ def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed:
                      "targets": len(agent.history.targets)}
         print(f"seed {seed} {mode}: {trained:.0f} CPU s, {agent.updates} updates, "
               f"{len(agent.history.targets)} targets", flush=True)
-    out["random"] = {"rows": coverage(None, env, episodes, episode_length, seed=10_000 + seed)}
+    if "random" in methods:
+        out["random"] = {"rows": coverage(None, env, episodes, episode_length, seed=10_000 + seed)}
     return out
 
 
-def table(results: list[dict[str, dict]], objects: tuple[str, ...]) -> list[dict]:
+def table(results: list[dict[str, dict]], objects: tuple[str, ...], methods: tuple[str, ...]) -> list[dict]:
     """One line per multi-object row seen by any method: its share per method, mean and std over seeds."""
     width = len(objects) + 1
-    keys = sorted({k for r in results for m in METHODS for k in r[m]["rows"] if multi_object(*k, width)})
+    keys = sorted({k for r in results for m in methods for k in r[m]["rows"] if multi_object(*k, width)})
     lines = []
     for key in keys:
         line: dict = {"row": describe_row(*key, objects)}
-        for m in METHODS:
+        for m in methods:
             shares = np.array([r[m]["rows"].get(key, 0.0) for r in results])
             line[m] = (float(shares.mean()), float(shares.std()))
         lines.append(line)
-    return sorted(lines, key=lambda line: line["random"][0])
+    return sorted(lines, key=lambda line: line[methods[-1]][0])
 
 
-def markdown(lines: list[dict]) -> str:
-    head = "| interaction (object-level row) | SkiLD | DIAYN | random primitives |\n|---|---|---|---|\n"
-    body = "".join(f"| {line['row']} | " + " | ".join(f"{line[m][0]:.2f} ± {line[m][1]:.2f}" for m in METHODS)
+def markdown(lines: list[dict], methods: tuple[str, ...]) -> str:
+    head = ("| interaction (object-level row) | " + " | ".join(TITLES[m] for m in methods) + " |\n|---|"
+            + "---|" * len(methods) + "\n")
+    body = "".join(f"| {line['row']} | " + " | ".join(f"{line[m][0]:.2f} ± {line[m][1]:.2f}" for m in methods)
                    + " |\n" for line in lines)
-    mean = {m: np.mean([line[m][0] for line in lines]) if lines else 0.0 for m in METHODS}
-    return head + body + "| **mean over these rows** | " + " | ".join(f"{mean[m]:.2f}" for m in METHODS) + " |\n"
+    mean = {m: np.mean([line[m][0] for line in lines]) if lines else 0.0 for m in methods}
+    return head + body + "| **mean over these rows** | " + " | ".join(f"{mean[m]:.2f}" for m in methods) + " |\n"
 
 
-def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_length: int, out: Path) -> None:
+def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_length: int, out: Path,
+         graphs: str = "true", methods: tuple[str, ...] = METHODS) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     from envs.registry import make_env
     objects = object_names(make_env(env).env_spec().factor_objects)
     wall = time.time()
-    results = [one_seed(env, env_steps, episodes, episode_length, s) for s in seeds]
-    lines = table(results, objects)
-    text = markdown(lines)
+    methods = tuple(m for m in METHODS if m in methods)
+    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods) for s in seeds]
+    lines = table(results, objects, methods)
+    text = markdown(lines, methods)
     budget = {m: {"train_cpu_s": [r[m]["train_cpu_s"] for r in results], "updates": [r[m]["updates"] for r in results],
-                  "targets": [r[m]["targets"] for r in results]} for m in ("skild", "diayn")}
-    (out / f"{env}.json").write_text(json.dumps({"env": env, "env_steps": env_steps, "seeds": seeds,
+                  "targets": [r[m]["targets"] for r in results]} for m in methods if m != "random"}
+    name = env if graphs == "true" else f"{env}-{graphs}"
+    (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
                                                  "episodes": episodes, "episode_length": episode_length,
                                                  "wall_s": time.time() - wall, "budget": budget, "table": lines},
                                                 indent=1))
-    (out / f"{env}.md").write_text(text)
+    (out / f"{name}.md").write_text(text)
     print(text)
     print(f"budget: {env_steps} env steps per method and seed; {budget}; wall {time.time() - wall:.0f} s")
 
@@ -96,5 +107,9 @@ if __name__ == "__main__":
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--episode-length", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/skild-coverage"))
+    parser.add_argument("--graphs", choices=("true", "pcmi"), default="true",
+                        help="SkiLD's induced graphs: the true local graphs or a learned model's pCMI")
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     args = parser.parse_args()
-    main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out)
+    main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out, args.graphs,
+         tuple(args.methods))

@@ -3,7 +3,9 @@
 In one process on a list of household envs: the graph selector picks a target every ``L`` steps
 (or when an episode ends), the skill policy acts epsilon-greedily, each transition's induced graph
 is the env's true local graph pooled to objects (the chapter's ablation "with ground-truth graphs";
-``graphs="true"``), the history, the discriminator and both policies learn from it.
+``graphs="true"``) or, with ``graphs="pcmi"``, the point-wise CMI graph of a CDL model trained on the
+run's own transitions (:class:`LearnedGraphs`, the chapter's estimator); the history, the
+discriminator and both policies learn from it.
 
 :func:`coverage` runs a trained agent for ``episodes`` episodes with random skills (a target drawn
 uniformly from the history's targets, ``b`` uniform, every ``L`` steps) and counts the share of
@@ -18,12 +20,15 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from causal.cdl import CDLConfig
+from causal.cdl_trainer import CDLTrainer
+from causal.factored import FactorLayout
 from causal.skild import SkiLDConfig, key_rows, novelty_reward, object_graphs, object_names, row_keys
 from causal.skild_agent import SkillLearnerConfig, SkiLDAgent
 from envs.registry import make_env
 from proto.settings import doc
 
-GRAPH_SOURCES = ("true",)
+GRAPH_SOURCES = ("true", "pcmi")
 
 
 @dataclass(frozen=True)
@@ -35,7 +40,10 @@ class PretrainConfig:
     num_envs: int = doc(16, "envs stepped together (one batched forward pass per step)")
     episode_length: int = doc(0, "steps per episode (0: the env's default)")
     updates_per_step: int = doc(1, "skill-policy updates per batched env step (num_envs transitions)")
-    graphs: str = doc("true", "induced graphs from: true (the env's local graphs, the chapter's ablation)")
+    graphs: str = doc("true", "induced graphs from: true (the env's local graphs, the chapter's ablation) or "
+                              "pcmi (a CDL model trained on the run's transitions, point-wise CMI >= 0.02)")
+    dynamics_updates_per_step: int = doc(1, "pcmi: dynamics-model updates per batched env step")
+    dynamics_warmup: int = doc(2_000, "pcmi: transitions before the dynamics model's first update")
 
     def __post_init__(self) -> None:
         if self.graphs not in GRAPH_SOURCES:
@@ -82,6 +90,7 @@ def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig,
     envs = HouseholdBatch(run.env, run.num_envs, run.episode_length, seed)
     agent = SkiLDAgent(envs.sizes, len(object_names(envs.objects)), envs.actions, cfg, learner, mode, seed)
     skills = _Skills(agent, envs.states)
+    learned = LearnedGraphs(envs, run, seed) if run.graphs == "pcmi" else None
     stats: dict[str, float] = {}
     for step in range(run.env_steps // run.num_envs):
         done_steps = step * run.num_envs
@@ -90,6 +99,8 @@ def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig,
         states = envs.states
         actions = agent.act(states, skills.factor, skills.row, skills.b, epsilon)
         nxt, graphs, terminated, ended, after = envs.step(actions)
+        if learned is not None:
+            graphs = learned.step(agent, states, actions, nxt)
         induced = object_graphs(graphs, envs.objects)
         counts = agent.observe(state=states, action=actions, next_state=nxt, terminated=terminated,
                                induced=induced, factor=skills.factor, row=skills.row, b=skills.b)
@@ -102,6 +113,39 @@ def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig,
             log({"env_steps": float(done_steps), "epsilon": epsilon, "targets": float(len(agent.history.targets)),
                  "seen": float(agent.history.seen()), **stats})
     return agent, envs
+
+
+class LearnedGraphs:
+    """Induced graphs from a learned model (the chapter's estimator): CDL's dynamics model trained on
+    the skill replay's transitions, an edge where point-wise CMI >= its threshold (0.02 nats), self-edges
+    always, and an unchanged attribute given only its self-edge (the authors' rule)."""
+
+    def __init__(self, envs: HouseholdBatch, run: PretrainConfig, seed: int) -> None:
+        spec = envs.envs[0].env_spec()
+        self.trainer = CDLTrainer(FactorLayout.from_spec(spec), CDLConfig(), seed=seed)
+        self.run = run
+        d = len(envs.sizes)
+        self.eye = np.eye(d, d + 1, dtype=bool)
+
+    def step(self, agent: SkiLDAgent, states: np.ndarray, actions: np.ndarray, nxt: np.ndarray) -> np.ndarray:
+        """Train the model on replayed transitions, then the local graphs ``[B, d, d + 1]`` of this step."""
+        replay = agent.replay
+        if replay.size >= self.run.dynamics_warmup:
+            for _ in range(self.run.dynamics_updates_per_step):
+                index = agent.rng.integers(0, replay.size, self.trainer.batch_size)
+                self.trainer.update(*_tensors(replay.fields["state"][index], replay.fields["action"][index],
+                                              replay.fields["next_state"][index]))
+        with torch.no_grad():
+            scores = self.trainer.model.pointwise_cmi(*_tensors(states, actions, nxt)).numpy()
+        graphs = (scores >= self.trainer.cfg.cmi_threshold) | self.eye
+        unchanged = states == nxt
+        graphs[unchanged] = self.eye[np.nonzero(unchanged)[1]]
+        return graphs
+
+
+def _tensors(states: np.ndarray, actions: np.ndarray, nxt: np.ndarray) -> tuple[torch.Tensor, ...]:
+    return (torch.as_tensor(states, dtype=torch.float32), torch.as_tensor(actions, dtype=torch.float32)[:, None],
+            torch.as_tensor(nxt, dtype=torch.float32))
 
 
 class _Skills:

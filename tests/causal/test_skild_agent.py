@@ -84,3 +84,20 @@ def test_the_method_trains_its_induced_graph_model_under_its_own_name():
     scores = method.local_graph.scores(model, s[:8], a[:8], s2[:8])
     assert scores.shape == (8, 12, 13) and method.local_graph.threshold(model) == pytest.approx(0.02)
     assert method.global_graph is None
+
+
+def test_learned_induced_graphs_keep_self_edges_and_give_unchanged_factors_nothing_else():
+    run = PretrainConfig(env="installing-printer", env_steps=160, num_envs=4, graphs="pcmi", dynamics_warmup=64)
+    agent, envs = pretrain(run, SkiLDConfig(eligible_after=5), TINY, mode="skild", seed=0)
+    assert agent.replay.size == 160 and agent.history.seen() > 0
+    from causal.skild_pretrain import LearnedGraphs
+
+    learned = LearnedGraphs(envs, run, seed=0)
+    batch = agent.replay.sample(16, np.random.default_rng(0))
+    graphs = learned.step(agent, batch["state"], batch["action"], batch["next_state"])
+    d = graphs.shape[1]
+    assert graphs.shape == (16, d, d + 1) and graphs[:, np.arange(d), np.arange(d)].all()
+    unchanged = batch["state"] == batch["next_state"]
+    assert unchanged.any() and (graphs[unchanged].sum(axis=1) == 1).all()
+    with pytest.raises(ValueError, match="graphs must be one of"):
+        PretrainConfig(graphs="oracle")
