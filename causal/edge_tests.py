@@ -31,7 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-EDGE_RULES = ("fixed", "fdr")
+from proto.messages import EDGE_RULES
+
+__all__ = ["EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "undecided"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,13 @@ class EdgeEstimate:
         n = gains.shape[0]
         sd = gains.std(axis=0, ddof=1) if n > 1 else np.zeros(gains.shape[1:])
         return cls(gains.mean(axis=0), sd / math.sqrt(max(n, 1)), n)
+
+    @classmethod
+    def from_sums(cls, total: np.ndarray, squares: np.ndarray, n: int) -> "EdgeEstimate":
+        """From the sums of the per-sample ratios and of their squares over ``n`` samples (a stream)."""
+        mean = total / max(n, 1)
+        var = np.clip(squares - n * mean**2, 0.0, None) / max(n - 1, 1)
+        return cls(mean, np.sqrt(var / max(n, 1)) if n > 1 else np.zeros_like(mean), n)
 
     def interval(self, z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
         """A two-sided normal confidence interval (95% by default)."""
@@ -89,3 +98,20 @@ def undecided(estimate: EdgeEstimate, threshold: float, z: float = 1.96) -> np.n
     """Entries whose confidence interval contains ``threshold``: the data cannot yet say which side."""
     low, high = estimate.interval(z)
     return (low < threshold) & (high >= threshold)
+
+
+def decide(estimate: EdgeEstimate, rule: str, threshold: float, fdr: float, min_cmi: float,
+           z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
+    """The edges and the undecided entries (bool ``[d_S, d_S + 1]``, self-edges neither) under ``rule``.
+
+    ``fixed``: edge if ``cmi >= threshold``; undecided where the interval contains ``threshold``.
+    ``fdr``: edge if the ``CMI > min_cmi`` test rejects at ``fdr`` (:func:`fdr_graph`); undecided is
+    an entry that is not an edge yet whose interval reaches ``min_cmi`` (neither shown to be an edge
+    nor shown to be below the smallest effect that counts). Either way more held-out data decides it."""
+    if rule not in EDGE_RULES:
+        raise ValueError(f"edge rule must be one of {EDGE_RULES}, got {rule!r}")
+    off = ~np.eye(*estimate.cmi.shape, dtype=bool)
+    if rule == "fixed":
+        return (estimate.cmi >= threshold) & off, undecided(estimate, threshold, z) & off
+    edges = fdr_graph(estimate, fdr, min_cmi)
+    return edges, ~edges & (estimate.interval(z)[1] >= min_cmi) & off

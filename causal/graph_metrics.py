@@ -169,7 +169,7 @@ def _count_at_or_above(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray
 
 def score_graph(
     cmi: np.ndarray, truth: np.ndarray, threshold: float, constant_factors: Sequence[int] | None = None,
-    num: int | None = None,
+    num: int | None = None, predicted: np.ndarray | None = None,
 ) -> dict[str, float]:
     """All the chapter's metrics: at the working threshold, ROC AUC, and at the best threshold.
 
@@ -178,20 +178,24 @@ def score_graph(
     indices, possibly none) the same metrics over
     :func:`identifiable_entries` follow, prefixed ``identifiable_`` (equal to the others when
     nothing is constant), with ``unidentifiable_true_edges``: the true edges left out. ``num`` selects
-    the best-threshold search (:func:`best_threshold`: exact by default)."""
-    scores = _scores(cmi, truth, threshold, scored_entries(truth.shape), num)
+    the best-threshold search (:func:`best_threshold`: exact by default). ``predicted`` is the graph
+    the working-point scores (accuracy, precision, recall, F1) judge when another rule than
+    ``cmi >= threshold`` decided it (the FDR-tested graph, :mod:`causal.edge_tests`)."""
+    predicted = cmi >= threshold if predicted is None else predicted.astype(bool)
+    with_self = predicted | ~scored_entries(truth.shape)
+    scores = _scores(cmi, truth, predicted, scored_entries(truth.shape), num)
     scores.update({f"with_self_{k}": v for k, v in
-                   _scores(self_edges_kept(cmi), truth, threshold, np.ones(truth.shape, bool), num).items()})
+                   _scores(self_edges_kept(cmi), truth, with_self, np.ones(truth.shape, bool), num).items()})
     if constant_factors is not None:
         mask = identifiable_entries(truth.shape, constant_factors)
-        scores.update({f"identifiable_{k}": v for k, v in _scores(cmi, truth, threshold, mask, num).items()})
+        scores.update({f"identifiable_{k}": v for k, v in _scores(cmi, truth, predicted, mask, num).items()})
         scores["unidentifiable_true_edges"] = float(np.sum(truth.astype(bool) & scored_entries(truth.shape) & ~mask))
     return scores
 
 
-def _scores(cmi: np.ndarray, truth: np.ndarray, threshold: float, mask: np.ndarray,
+def _scores(cmi: np.ndarray, truth: np.ndarray, predicted: np.ndarray, mask: np.ndarray,
             num: int | None = None) -> dict[str, float]:
-    scores = binary_scores(cmi >= threshold, truth, mask)
+    scores = binary_scores(predicted, truth, mask)
     scores["roc_auc"] = roc_auc(cmi, truth, mask)
     t, best = best_threshold(cmi, truth, num, mask)
     scores["best_threshold"] = t

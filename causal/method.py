@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 from torch import nn
 
 from causal.abstraction import Abstraction, cdl_abstraction
+from causal.edge_tests import EdgeEstimate
 from causal.factored import FactorLayout
 
 
@@ -65,6 +66,22 @@ class GlobalGraphEstimator(Protocol):
 
     def threshold(self, model: nn.Module) -> float:
         """Edge if score >= this (from the model's own configuration)."""
+
+
+@runtime_checkable
+class EdgeEstimator(Protocol):
+    """A global-graph estimator whose scores are means of per-sample terms (CDL's CMI: log-likelihood
+    ratios) can give each entry a standard error too; the evaluator then reports them, the undecided
+    entries, and can decide edges by tests at a false-discovery rate (:mod:`causal.edge_tests`)."""
+
+    def estimate(self, model: nn.Module, state: torch.Tensor, action: torch.Tensor,
+                 next_state: torch.Tensor) -> EdgeEstimate:
+        """The scores of :meth:`GlobalGraphEstimator.scores` with their standard errors."""
+
+
+def has_standard_errors(method: "Method") -> bool:
+    """Whether ``method``'s global graph comes with standard errors (:class:`EdgeEstimator`)."""
+    return isinstance(method.global_graph, EdgeEstimator)
 
 
 class LocalGraphEstimator(Protocol):

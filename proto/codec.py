@@ -25,7 +25,7 @@ import msgpack
 import numpy as np
 
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
-from proto.messages import SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ScoredBatch
+from proto.messages import EDGE_RULES, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ScoredBatch
 from proto.messages import ServiceStats, TransitionBatch, Weights
 
 Message = EnvSpec | TransitionBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport | Control | ServiceStats
@@ -328,7 +328,8 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "action_irrelevant": _tuple(_int), "metrics": _str_map(_float),
         "true_graph": _optional(_GRAPH), "num_heldout": _int, "timestamp": _float,
         "reward_scores": _optional(_F32_1D), "reward_parents": _optional(_PARENTS), "reward_threshold": _float,
-        "true_reward_parents": _optional(_PARENTS),
+        "true_reward_parents": _optional(_PARENTS), "cmi_stderr": _optional(_F32_2D),
+        "undecided": _optional(_GRAPH), "edge_rule": _str, "fdr": _float, "min_cmi": _float,
     },
     LocalGraphReport: {
         "kind": _str, "estimator": _str, "weights_version": _int, "env_steps": _int, "updates": _int,
@@ -431,6 +432,22 @@ def _check_graph_report(m: GraphReport) -> None:
     _require(len(set(classes)) == len(classes), "inconsistent", "GraphReport: classes overlap")
     _check_counters(m, "weights_version", "env_steps", "updates", "num_heldout")
     _check_reward_graph(m, d)
+    _check_edge_tests(m, shape)
+
+
+def _check_edge_tests(m: GraphReport, shape: tuple[int, int]) -> None:
+    """Standard errors and undecided entries come together, shaped like the CMI; the rule is known."""
+    ok = (m.cmi_stderr is None) == (m.undecided is None)
+    _require(ok, "inconsistent", "GraphReport: cmi_stderr and undecided come together")
+    if m.cmi_stderr is not None:
+        got = m.cmi_stderr.shape
+        _require(got == shape, "inconsistent", f"GraphReport.cmi_stderr: {got}, want {shape}")
+        _require(bool((m.cmi_stderr >= 0).all()), "bad_array", "GraphReport.cmi_stderr: negative")
+        _check_graph(m.undecided, shape, "GraphReport.undecided")
+    _require(m.edge_rule in EDGE_RULES, "bad_field", f"GraphReport.edge_rule: {_short(m.edge_rule)}")
+    ok = m.edge_rule == "fixed" or m.cmi_stderr is not None
+    _require(ok, "inconsistent", "GraphReport: edge_rule fdr without cmi_stderr")
+    _require(0.0 <= m.fdr < 1.0 and m.min_cmi >= 0.0, "bad_field", f"GraphReport: fdr {m.fdr}, min_cmi {m.min_cmi}")
 
 
 def _check_reward_graph(m: GraphReport, d: int) -> None:

@@ -16,11 +16,13 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
 CONTROL_COMMANDS = ("pause", "resume", "checkpoint", "stop", "set_task", "scale")
+EDGE_RULES = ("fixed", "fdr")
+"""How a graph report decides its edges: CMI >= threshold, or tests at a false-discovery rate."""
 
 
 @dataclass(frozen=True)
@@ -152,6 +154,17 @@ class GraphReport:
     reward_threshold: float = 0.0
     true_reward_parents: np.ndarray | None = None
     """uint8 [d_S + 1]: the env's true reward parents (``EnvSpec.reward_parents``), when known"""
+    cmi_stderr: np.ndarray | None = None
+    """float32 [d_S, d_S + 1], nats, >= 0: each entry's standard error, from the per-sample ratios
+    behind its CMI; only from an estimator that has them (schema version 5)"""
+    undecided: np.ndarray | None = None
+    """uint8 [d_S, d_S + 1]: entries the data cannot yet decide (``causal.edge_tests.decide``); with
+    ``cmi_stderr``"""
+    edge_rule: str = "fixed"
+    """``fixed``: edge if ``cmi >= threshold``; ``fdr``: edge if the test of ``cmi > min_cmi`` rejects
+    at false-discovery rate ``fdr`` (Benjamini-Hochberg over the off-diagonal entries)"""
+    fdr: float = 0.0
+    min_cmi: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import torch
 from causal.abstraction import cdl_abstraction
 from causal.cdl import CDLConfig, CDLModel, model_from_config
 from causal.cdl_trainer import CDLTrainer
+from causal.edge_tests import EdgeEstimate
 from causal.method import Method
 from causal.planning import cdl_rollout_step
 
@@ -27,6 +28,23 @@ class CMIGraph:
 
     def threshold(self, model: CDLModel) -> float:
         return model.cfg.cmi_threshold
+
+    @torch.no_grad()
+    def estimate(self, model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                 chunk: int = 4096) -> EdgeEstimate:
+        """The same CMI with standard errors from its per-sample log-likelihood ratios (the point-wise
+        CMI), streamed in chunks; constant inputs are 0 with standard error 0, as in :meth:`scores`."""
+        total = np.zeros((model.num_outputs, model.num_inputs))
+        squares = np.zeros_like(total)
+        for start in range(0, state.shape[0], chunk):
+            gains = model.pointwise_cmi(*(t[start : start + chunk] for t in (state, action, next_state))).double().cpu()
+            total += gains.sum(dim=0).numpy()
+            squares += gains.square().sum(dim=0).numpy()
+        estimate = EdgeEstimate.from_sums(total, squares, state.shape[0])
+        if state.shape[0]:
+            constant = model.constant_inputs(state, action).cpu().numpy()
+            estimate.cmi[:, constant], estimate.stderr[:, constant] = 0.0, 0.0
+        return estimate
 
 
 class PointwiseCMI:

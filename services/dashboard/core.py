@@ -200,8 +200,10 @@ def graph_document(report: GraphReport, received_at: float) -> dict:
     names = list(report.factor_names)
     outcome = classify(report.adjacency, report.true_graph)
     truth = report.true_graph
+    stderr, undecided = report.cmi_stderr, report.undecided
     cells = [[{"cmi": short(report.cmi[i, j]), "learned": bool(report.adjacency[i, j]),
-               "truth": None if truth is None else bool(truth[i, j]), "outcome": outcome[i][j]}
+               "truth": None if truth is None else bool(truth[i, j]), "outcome": outcome[i][j],
+               **({} if stderr is None else {"stderr": short(stderr[i, j]), "undecided": bool(undecided[i, j])})}
               for j in range(report.cmi.shape[1])] for i in range(report.cmi.shape[0])]
     counts = None if truth is None else count_outcomes(outcome)
     classes = [{"key": key, "label": label, "factors": [{"index": i, "name": names[i]} for i in getattr(report, key)]}
@@ -213,5 +215,11 @@ def graph_document(report: GraphReport, received_at: float) -> dict:
             "cause_names": cause_names(names), "metrics": dict(report.metrics),
             "cmi_max": short(report.cmi.max()), "confusion": counts, "cells": cells,
             "classes": classes if reward is None else reward["classes"], "reward": reward,
-            "abstraction": "cdl" if reward is None else "minimal"}
+            "abstraction": "cdl" if reward is None else "minimal", **edge_rule_document(report)}
+
+
+def edge_rule_document(report: GraphReport) -> dict:
+    """How the report's edges were decided, and how many entries are undecided (None without standard errors)."""
+    return {"edge_rule": report.edge_rule, "fdr": report.fdr, "min_cmi": report.min_cmi,
+            "undecided": None if report.undecided is None else int(report.undecided.sum())}
 

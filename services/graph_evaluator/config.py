@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from proto.messages import EDGE_RULES
 from services.runtime.config import ServiceConfig, doc
 
 
@@ -11,6 +12,14 @@ class GraphEvaluatorConfig(ServiceConfig):
     """graph-evaluator: the method's graph estimators on held-out transitions for every published weights version.
 
     The edge threshold is the method's own (in the model configuration the weights carry)."""
+
+    edge_rule: str = doc("fixed", "how edges are decided: fixed (CMI >= the method's threshold, the chapter's "
+                                  "0.02 nats) or fdr (each entry's test of CMI > min_cmi, from its standard "
+                                  "error, at false-discovery rate fdr, Benjamini-Hochberg; needs a method whose "
+                                  "graph has standard errors)", choices=EDGE_RULES)
+    fdr: float = doc(0.05, "false-discovery rate of the fdr edge rule")
+    min_cmi: float = doc(5e-4, "smallest CMI (nats) the fdr rule counts as an effect: a learned model's CMI of a "
+                               "non-edge is biased slightly above 0 (docs/deviations.md)")
 
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "
                                 "eval_samples of them, so successive estimates see different episodes")
@@ -30,5 +39,7 @@ class GraphEvaluatorConfig(ServiceConfig):
             raise ValueError(f"cmi_ema must be in [0, 1), got {self.cmi_ema}")
         if self.eval_samples <= 0 or self.min_heldout < 1 or self.heldout_capacity < self.min_heldout:
             raise ValueError("eval_samples and min_heldout must be positive and heldout_capacity >= min_heldout")
+        if not 0.0 < self.fdr < 1.0 or not 0.0 <= self.min_cmi < float("inf"):
+            raise ValueError(f"fdr must be in (0, 1) and min_cmi finite and >= 0, got {self.fdr}, {self.min_cmi}")
         if self.local_capacity < 1 or self.local_samples < 1 or not 0 <= self.local_examples <= 64:
             raise ValueError("local_capacity and local_samples must be >= 1, local_examples in [0, 64]")

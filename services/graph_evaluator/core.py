@@ -1,5 +1,6 @@
-"""graph-evaluator core: held-out set, the method's edge scores (CDL: CMI) with a moving average,
-graph, reward graph (CBM), abstraction, scores. No bus; no particular method (the run's comes from the registry)."""
+"""graph-evaluator core: held-out set, the method's edge scores (CDL: CMI, with standard errors) with a
+moving average, graph (fixed threshold or FDR tests), reward graph (CBM), abstraction, scores. No bus;
+no particular method (the run's comes from the registry)."""
 from __future__ import annotations
 
 import json
@@ -12,8 +13,9 @@ import torch
 from torch import nn
 
 from causal.abstraction import with_self_edges
+from causal.edge_tests import EdgeEstimate, decide
 from causal.graph_metrics import score_graph
-from causal.method import import_tensors, task_abstraction
+from causal.method import EdgeEstimator, has_standard_errors, import_tensors, task_abstraction
 from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
@@ -39,6 +41,8 @@ class GraphEvaluatorCore:
     def __init__(self, cfg: GraphEvaluatorConfig, spec: EnvSpec) -> None:
         self.cfg, self.spec = cfg, spec
         self.method = get_method(cfg.method)
+        if cfg.edge_rule == "fdr" and not has_standard_errors(self.method):
+            raise ValueError(f"edge_rule fdr needs standard errors of the graph's scores; {cfg.method}'s have none")
         self.kind = self.method.name
         self.device = resolve_device(cfg.device, self.method.devices)
         self.constant_factors = constant_factor_indices(spec)
@@ -53,6 +57,9 @@ class GraphEvaluatorCore:
         self.evaluated_version = -1
         self.evaluated_updates = 0
         self.cmi_ema: np.ndarray | None = None
+        self.stderr_ema: np.ndarray | None = None
+        """Standard errors of ``cmi_ema`` (averaged alike: an upper bound, see :meth:`evaluate`), for an
+        estimator that has them."""
         self.threshold = float("nan")
         """Edge threshold of the loaded model's global-graph estimator (its own configuration)."""
         self.reward_ema: np.ndarray | None = None
@@ -100,10 +107,16 @@ class GraphEvaluatorCore:
         assert self.local is not None and self.model is not None and self.weights is not None
         return self.local.evaluate(self.model, self.weights, every)
 
-    def edge_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
-        """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions."""
+    def edge_scores(self, state: torch.Tensor, action: torch.Tensor,
+                    next_state: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
+        """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions,
+        and their standard errors where the estimator gives them (None otherwise)."""
         state, action, next_state = (t.to(self.device) for t in (state, action, next_state))
-        return np.asarray(self.method.global_graph.scores(self.model, state, action, next_state), dtype=np.float32)
+        estimator = self.method.global_graph
+        if isinstance(estimator, EdgeEstimator):
+            estimate = estimator.estimate(self.model, state, action, next_state)
+            return estimate.cmi.astype(np.float32), estimate.stderr.astype(np.float32)
+        return np.asarray(estimator.scores(self.model, state, action, next_state), dtype=np.float32), None
 
     def reward_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
                       reward: torch.Tensor) -> np.ndarray | None:
@@ -116,15 +129,22 @@ class GraphEvaluatorCore:
 
     def evaluate(self) -> GraphReport:
         """Edge scores for every edge (and the reward's, for a method with a reward graph) on held-out
-        data, smoothed, thresholded and scored."""
+        data, smoothed, decided and scored.
+
+        The standard errors are averaged with the same weights as the scores. The standard deviation
+        of a weighted sum is at most the weighted sum of the standard deviations whatever their
+        correlation, and successive estimates are correlated (overlapping draws, similar models): the
+        running standard error is an upper bound, never the smaller one independence would claim."""
         assert self.model is not None and self.weights is not None
         n = min(self.cfg.eval_samples, self.heldout.size)
         index = self.heldout.rng.choice(self.heldout.size, n, replace=False)
         s, a, nxt, r = (torch.from_numpy(x[: self.heldout.size][index]) for x in
                         (self.heldout.state, self.heldout.action, self.heldout.next_state, self.heldout.reward))
-        cmi, rewards = self.edge_scores(s, a, nxt), self.reward_scores(s, a, nxt, r)
+        (cmi, stderr), rewards = self.edge_scores(s, a, nxt), self.reward_scores(s, a, nxt, r)
         alpha = self.previous_weight(self.weights.updates)
         self.cmi_ema = cmi if self.cmi_ema is None else alpha * self.cmi_ema + (1 - alpha) * cmi
+        if stderr is not None:
+            self.stderr_ema = stderr if self.stderr_ema is None else alpha * self.stderr_ema + (1 - alpha) * stderr
         if rewards is not None:
             self.reward_ema = rewards if self.reward_ema is None else alpha * self.reward_ema + (1 - alpha) * rewards
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
@@ -136,7 +156,7 @@ class GraphEvaluatorCore:
         draws of ``eval_samples``, is replaced by it)."""
         assert self.model is not None and self.weights is not None
         transitions = self.heldout.all()
-        self.cmi_ema = self.edge_scores(*transitions)
+        self.cmi_ema, self.stderr_ema = self.edge_scores(*transitions)
         self.reward_ema = self.reward_scores(*transitions, torch.from_numpy(self.heldout.reward[: self.heldout.size]))
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(self.heldout.size)
@@ -152,19 +172,32 @@ class GraphEvaluatorCore:
         since = updates - self.evaluated_updates
         return float(self.cfg.cmi_ema ** max(since, 1)) if since >= 0 else 0.0
 
+    def decide(self, cmi: np.ndarray, stderr: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The edges (self-edges left out) under the configured rule, and the undecided entries
+        (None without standard errors: only the fixed rule applies then)."""
+        if stderr is None:
+            return cmi >= self.threshold, None
+        cfg = self.cfg
+        return decide(EdgeEstimate(cmi, stderr, 0), cfg.edge_rule, self.threshold, cfg.fdr, cfg.min_cmi)
+
     def report(self, num_heldout: int) -> GraphReport:
         cmi, threshold = self.cmi_ema.astype(np.float32), self.threshold
-        adjacency = with_self_edges(cmi >= threshold).astype(np.uint8)
+        stderr = None if self.stderr_ema is None else self.stderr_ema.astype(np.float32)
+        edges, undecided = self.decide(cmi, stderr)
+        adjacency = with_self_edges(edges).astype(np.uint8)
         rewards = None if self.reward_ema is None else self.reward_ema.astype(np.float32)
         parents = None if rewards is None else (rewards >= self.reward_threshold).astype(np.uint8)
         abstraction = task_abstraction(self.method, adjacency, parents)
         truth = self.spec.global_graph
-        metrics = score_graph(cmi, truth, threshold, self.constant_factors) if truth is not None else {}
+        metrics = (score_graph(cmi, truth, threshold, self.constant_factors, predicted=edges)
+                   if truth is not None else {})
         if rewards is not None:
             metrics.update(reward_metrics(rewards, parents, self.spec.reward_parents))
             metrics.update(abstraction_metrics(adjacency, abstraction, truth, self.spec.reward_parents))
         w = self.weights
-        self.history.append({"env_steps": w.env_steps, "updates": w.updates, "time": time.time(), **metrics})
+        tested = {} if undecided is None else {"undecided_entries": int(undecided.sum())}
+        self.history.append({"env_steps": w.env_steps, "updates": w.updates, "time": time.time(), **metrics, **tested})
+        rule = self.cfg.edge_rule if stderr is not None else "fixed"
         return GraphReport(kind=self.kind, weights_version=w.version, env_steps=w.env_steps, updates=w.updates,
                            factor_names=self.spec.factor_names, cmi=cmi, adjacency=adjacency,
                            threshold=threshold, controllable=abstraction.controllable,
@@ -173,7 +206,10 @@ class GraphEvaluatorCore:
                            true_graph=truth, num_heldout=num_heldout, timestamp=time.time(),
                            reward_scores=rewards, reward_parents=parents,
                            reward_threshold=self.reward_threshold if rewards is not None else 0.0,
-                           true_reward_parents=self.spec.reward_parents if rewards is not None else None)
+                           true_reward_parents=self.spec.reward_parents if rewards is not None else None,
+                           cmi_stderr=stderr, undecided=None if undecided is None else undecided.astype(np.uint8),
+                           edge_rule=rule, fdr=self.cfg.fdr if rule == "fdr" else 0.0,
+                           min_cmi=self.cfg.min_cmi if rule == "fdr" else 0.0)
 
     def fingerprint(self) -> str:
         """What a checkpoint must match to be resumed: the environment (held-out data is env-specific);
@@ -187,6 +223,8 @@ class GraphEvaluatorCore:
                  "evaluated_version": self.evaluated_version, "evaluated_updates": self.evaluated_updates}
         if self.cmi_ema is not None:
             state["cmi_ema"] = torch.from_numpy(self.cmi_ema)
+        if self.stderr_ema is not None:
+            state["stderr_ema"] = torch.from_numpy(self.stderr_ema)
         if self.reward_ema is not None:
             state["reward_ema"] = torch.from_numpy(self.reward_ema)
         if self.local is not None:
@@ -203,6 +241,8 @@ class GraphEvaluatorCore:
         self.evaluated_updates = int(saved.get("evaluated_updates", 0))
         if "cmi_ema" in saved:
             self.cmi_ema = saved["cmi_ema"].numpy()
+        if "stderr_ema" in saved:
+            self.stderr_ema = saved["stderr_ema"].numpy()
         if "reward_ema" in saved:
             self.reward_ema = saved["reward_ema"].numpy()
         if self.local is not None and "local" in saved:

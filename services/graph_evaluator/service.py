@@ -26,6 +26,8 @@ class _Metrics:
                        for name in REPORTED_SCORES}
         self.best_threshold = m.gauge("causeway_graph_best_threshold_nats", "Edge-score threshold with the best F1 (CMI: nats)")
         self.edges = m.gauge("causeway_graph_edges", "Edges in the learned graph (self-edges excluded)")
+        self.undecided = m.gauge("causeway_graph_undecided_entries",
+                                 "Graph entries the held-out data cannot yet decide (confidence interval across the rule's boundary)")
         self.classes = m.gauge("causeway_abstraction_factors", "Factors per abstraction class", ("class",))
         self.reports = m.counter("causeway_graph_reports", "GraphReports published")
         self.heldout = m.gauge("causeway_heldout_transitions", "Held-out transitions available for CMI")
@@ -56,6 +58,8 @@ class _Metrics:
             self.best_threshold.set(report.metrics["best_threshold"])
         n = report.adjacency.shape[0]
         self.edges.set(int(report.adjacency.sum()) - int(report.adjacency[range(n), range(n)].sum()))
+        if report.undecided is not None:
+            self.undecided.set(int(report.undecided.sum()))
         for cls in ("controllable", "action_relevant", "action_irrelevant"):
             self.classes.labels(**{"class": cls}).set(len(getattr(report, cls)))
         self.reports.inc()

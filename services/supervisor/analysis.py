@@ -140,7 +140,8 @@ def print_summary(content: dict) -> None:
         shown["task_abstraction"] = {k: content["task_abstraction"].get(k) for k in ("kept", "accuracy")}
     if "final_graph" in content:
         final = content["final_graph"]
-        shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "accuracy", "f1", "best_threshold_f1",
+        shown["final_graph"] = {k: final.get(k) for k in ("num_heldout", "edge_rule", "undecided_entries", "accuracy",
+                                                          "f1", "best_threshold_f1",
                                                           "with_self_best_threshold_f1",
                                                           "with_self_best_threshold_accuracy")}
     print(json.dumps(shown, indent=1))

@@ -48,6 +48,10 @@ class RunConfig(RunSettings):
                                            "after the env-step budget, for the learner to catch up and the graph to follow")
     target_f1: float = doc(0.0, "stop once the graph's --target-metric reaches this (0: never)")
     target_metric: str = doc("f1", "graph score compared with --target-f1", choices=REPORTED_SCORES)
+    stable_reports: int = doc(0, "stop once this many graph reports in a row have the same graph and the newest "
+                                 "has no undecided entry: a stop without ground truth (0: never; see --stable-seconds)")
+    stable_seconds: float = doc(0.0, "stop once the graph has been the same for this many seconds and the newest "
+                                     "report has no undecided entry (0: never; with --stable-reports, both must hold)")
     run_id: str = doc("", "run id (default: derived from env, graph and time)")
     run_dir: str = doc("", "run directory (default: runs/<run_id>); an existing one is resumed")
     router_port: int = doc(7447, "TCP port of the Zenoh router on 127.0.0.1 (0: pick a free one)")
@@ -81,7 +85,8 @@ class RunConfig(RunSettings):
         super().__post_init__()
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
-        for name in ("max_seconds", "max_env_steps", "catch_up_timeout_s", "target_f1"):
+        for name in ("max_seconds", "max_env_steps", "catch_up_timeout_s", "target_f1", "stable_reports",
+                     "stable_seconds"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("router_port", "metrics_base_port", "dashboard_port"):

@@ -60,11 +60,25 @@ def graph_fields(report: GraphReport) -> dict[str, Any]:
         "true_graph": report.true_graph.astype(int).tolist() if report.true_graph is not None else None,
         "cmi": np.round(report.cmi.astype(float), 5).tolist(),
         "abstraction": abstraction.named(report.factor_names),
+        **edge_test_fields(report),
     })
     objects = object_scores(report.adjacency, report.true_graph, report.factor_names)
     if objects is not None:
         out["object_level"] = objects
     out.update(reward_fields(report))  # a method with a reward graph (CBM): reward_graph, task_abstraction, ...
+    return out
+
+
+def edge_test_fields(report: GraphReport) -> dict[str, Any]:
+    """How the report decided its edges (``edge_rule``, and ``fdr`` / ``min_cmi`` under the fdr rule)
+    and, where the estimator has them, each entry's standard error and which entries are undecided."""
+    out: dict[str, Any] = {"edge_rule": report.edge_rule}
+    if report.edge_rule == "fdr":
+        out.update(fdr=report.fdr, min_cmi=report.min_cmi)
+    if report.cmi_stderr is not None:
+        out["cmi_stderr"] = [[float(f"{v:.3g}") for v in row] for row in report.cmi_stderr.astype(float)]
+        out["undecided"] = report.undecided.astype(int).tolist()
+        out["undecided_entries"] = int(report.undecided.sum())
     return out
 
 

@@ -1,4 +1,10 @@
-"""When a local run stops: a target score, an env-step budget (with the learner's catch-up), a time budget.
+"""When a local run stops: a target score, a stable graph, an env-step budget (with the learner's
+catch-up), a time budget.
+
+A target score needs the true graph; a stable graph does not: with ``--stable-reports`` and/or
+``--stable-seconds`` the run stops once that many graph reports in a row (that long) carry the same
+graph and the newest has no undecided entry (every entry's confidence interval on one side of the
+edge rule's boundary, :func:`causal.edge_tests.decide`).
 
 With ``--learner-updates-per-env-step`` the env-step budget does not stop the run at once: the
 env-workers are paused (the supervisor repeats ``pause`` every second so a restarted worker pauses
@@ -10,6 +16,8 @@ from __future__ import annotations
 
 import logging
 from typing import Callable
+
+import numpy as np
 
 from proto.messages import GraphReport
 from services.supervisor.config import RunConfig
@@ -26,6 +34,41 @@ def learner_caught_up(report: GraphReport | None, ratio: float, max_env_steps: i
     return report is not None and report.updates >= CATCH_UP_TOLERANCE * ratio * max_env_steps
 
 
+class StableGraph:
+    """Whether the graph has stopped changing: the same adjacency (and reward parents) for ``reports``
+    reports in a row and ``seconds``, with no undecided entry in the newest report (0 turns a
+    condition off; both 0: never)."""
+
+    def __init__(self, reports: int, seconds: float) -> None:
+        self.reports, self.seconds = reports, seconds
+        self._last: tuple[int, float] | None = None
+        self._graph = b""
+        self.count, self.since = 0, 0.0
+        """Reports in a row with the current graph, and when it first appeared."""
+
+    def observe(self, report: GraphReport | None, elapsed: float) -> None:
+        """Count ``report`` once (the supervisor passes the newest report at every check)."""
+        if report is None or (report.weights_version, report.timestamp) == self._last:
+            return
+        self._last = (report.weights_version, report.timestamp)
+        graph = report.adjacency.tobytes() + (b"" if report.reward_parents is None else report.reward_parents.tobytes())
+        if graph == self._graph:
+            self.count += 1
+        else:
+            self._graph, self.count, self.since = graph, 1, elapsed
+
+    def reason(self, report: GraphReport | None, elapsed: float) -> str:
+        """Why the graph counts as settled now, or ``""``."""
+        self.observe(report, elapsed)
+        if not (self.reports or self.seconds) or report is None or report.undecided is None:
+            return ""
+        settled = self.count >= self.reports and elapsed - self.since >= self.seconds
+        if not settled or np.any(report.undecided):
+            return ""
+        return (f"graph stable: unchanged for {self.count} reports ({elapsed - self.since:.0f}s), "
+                f"no undecided entry ({report.edge_rule} rule)")
+
+
 class StopRules:
     """Decides, from the newest report and the env steps so far, whether and why the run stops."""
 
@@ -33,6 +76,7 @@ class StopRules:
         self.cfg, self.pause_workers = cfg, pause_workers
         self.budget_reached_at: float | None = None
         self._last_pause = -1e9
+        self.stable = StableGraph(cfg.stable_reports, cfg.stable_seconds)
 
     def check(self, elapsed: float, report: GraphReport | None, env_steps: int) -> str:
         """The reason to stop now, or ``""``."""
@@ -40,6 +84,8 @@ class StopRules:
         reason = ""
         if cfg.target_f1 and report is not None and report.metrics.get(cfg.target_metric, 0.0) >= cfg.target_f1:
             reason = f"target {cfg.target_metric} {cfg.target_f1} reached"
+        elif stable := self.stable.reason(report, elapsed):
+            reason = stable
         elif cfg.max_env_steps and env_steps >= cfg.max_env_steps:
             reason = (self._catch_up(elapsed, report) if cfg.learner.updates_per_env_step > 0
                       else f"env step budget {cfg.max_env_steps} reached")

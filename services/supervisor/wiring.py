@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from causal.intrinsic import make_reward
+from causal.method import Method, has_standard_errors
 from causal.methods import get_method
 from envs.registry import EnvEntry, check_options, env_entry, make_env
 from proto.messages import EnvSpec
@@ -53,6 +54,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
     _check_policy(cfg, method.intrinsic)
     if cfg.target_f1 and method.global_graph is None:
         raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
+    _check_edge_tests(cfg, method)
     if cfg.target_f1 and not entry.has_global_truth:
         raise ValueError(f"environment {cfg.env!r} has no true global graph to score --target-metric against")
     run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
@@ -68,6 +70,15 @@ def _entry(name: str) -> EnvEntry:
         return env_entry(name)
     except KeyError as exc:
         raise ValueError(exc.args[0]) from None
+
+
+def _check_edge_tests(cfg: RunConfig, method: Method) -> None:
+    """The FDR edge rule and the stability stop rule need a global graph with standard errors."""
+    stable = cfg.stable_reports or cfg.stable_seconds
+    if (cfg.evaluator.edge_rule == "fdr" or stable) and not has_standard_errors(method):
+        what = "--evaluator-edge-rule fdr" if cfg.evaluator.edge_rule == "fdr" else "--stable-reports/--stable-seconds"
+        raise ValueError(f"{what} needs a global graph with standard errors (to test edges, to know none is "
+                         f"undecided); method {cfg.method!r} has none")
 
 
 def _check_policy(cfg: RunConfig, served: tuple[str, ...]) -> None:

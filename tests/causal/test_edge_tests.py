@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from causal.edge_tests import EdgeEstimate, benjamini_hochberg, fdr_graph, p_values, undecided
+from causal.edge_tests import EdgeEstimate, benjamini_hochberg, decide, fdr_graph, p_values, undecided
 
 
 def test_benjamini_hochberg_by_hand() -> None:
@@ -43,3 +44,27 @@ def test_the_fdr_graph_keeps_its_false_discovery_rate_on_simulated_estimates() -
         fdp.append((found & ~truth).sum() / max(found.sum(), 1))
         power.append((found & truth).sum() / max((truth & off).sum(), 1))
     assert np.mean(fdp) <= 0.1 * 1.25 and np.mean(power) > 0.6
+
+
+def test_streamed_sums_give_the_same_estimate() -> None:
+    gains = np.random.default_rng(2).normal(0.02, 0.3, (5_000, 3, 4))
+    whole = EdgeEstimate.from_pointwise(gains)
+    parts = [gains[:1_234], gains[1_234:]]
+    streamed = EdgeEstimate.from_sums(sum(p.sum(0) for p in parts), sum((p**2).sum(0) for p in parts), 5_000)
+    np.testing.assert_allclose(streamed.cmi, whole.cmi, rtol=1e-10)
+    np.testing.assert_allclose(streamed.stderr, whole.stderr, rtol=1e-8)
+    assert EdgeEstimate.from_sums(np.ones((1, 2)), np.ones((1, 2)), 1).stderr.tolist() == [[0.0, 0.0]]
+
+
+def test_decide_under_each_rule_leaves_the_self_edges_out() -> None:
+    cmi = np.array([[0.9, 0.021, 0.004, 0.0001], [0.05, 0.9, 0.0001, 0.003], [0.0001, 0.0001, 0.9, 0.03]])
+    stderr = np.array([[0.01, 0.005, 0.0005, 0.0001], [0.001, 0.01, 0.0001, 0.004], [0.0001, 0.0001, 0.01, 0.001]])
+    est = EdgeEstimate(cmi, stderr, 1_000)
+    edges, open_ = decide(est, "fixed", 0.02, 0.05, 5e-4)
+    assert np.argwhere(edges).tolist() == [[0, 1], [1, 0], [2, 3]]  # the diagonal is the caller's
+    assert np.argwhere(open_).tolist() == [[0, 1]]  # 0.021 +- 0.0098 straddles 0.02
+    edges, open_ = decide(est, "fdr", 0.02, 0.05, 5e-4)
+    assert np.argwhere(edges).tolist() == [[0, 1], [0, 2], [1, 0], [2, 3]]  # 0.004 +- 0.0005 is an edge now
+    assert np.argwhere(open_).tolist() == [[1, 3]]  # 0.003 +- 0.004: neither an edge nor below min_cmi
+    with pytest.raises(ValueError, match="edge rule"):
+        decide(est, "oracle", 0.02, 0.05, 5e-4)

@@ -301,3 +301,31 @@ def test_a_reward_graph_shows_as_a_reward_row_with_the_minimal_abstraction(stack
     finally:
         cbm.close()
     assert REWARD_SCREENSHOT.stat().st_size > 30_000
+
+
+def test_undecided_entries_are_outlined_and_hover_shows_the_interval(stack) -> None:
+    publisher, latest, base = stack
+    plain = make_report(3, version=2, errors=2)
+    undecided = np.zeros(plain.cmi.shape, np.uint8)
+    undecided[3, 0] = undecided[0, 9] = 1
+    report = replace(plain, cmi_stderr=np.full(plain.cmi.shape, 0.002, np.float32), undecided=undecided,
+                     edge_rule="fdr", fdr=0.05, min_cmi=5e-4)
+    latest.set(encode(report))
+    wait_for(lambda: fetch_json(f"{base}/api/runs/{RUN}")["graph"], 10, "the report")
+    with Browser(width=1440, height=1000) as browser:
+        browser.navigate(f"{base}/?run={RUN}")
+        browser.wait_for("document.body.dataset.weightsVersion === '2'", 10, "the first render")
+        outlined = browser.evaluate("[...document.querySelectorAll('#heatmap-learned rect.cell-undecided')]"
+                                    ".filter(r => r.getAttribute('visibility') === 'visible').length")
+        assert outlined == 2
+        legend = text(browser, "#legend-learned")
+        assert "undecided (2)" in legend and "at FDR 0.05" in legend
+        browser.fit_to_content()
+        browser.hover("#heatmap-learned rect.cell[data-i='3'][data-j='0']")
+        tip = browser.wait_for("!document.getElementById('tooltip').hidden"
+                               " && document.getElementById('tooltip').innerText", 5, "the tooltip")
+        low, high = (float(x) for x in re.search(r"95% interval\s+([-0-9.e]+) – ([-0-9.e]+) nats", tip).groups())
+        cmi = float(report.cmi[3, 0])
+        assert low == pytest.approx(cmi - 1.96 * 0.002, rel=5e-3) and high == pytest.approx(cmi + 1.96 * 0.002, rel=5e-3)
+        assert "crosses the boundary" in tip and "at FDR 0.05" in tip
+        assert browser.exceptions == []

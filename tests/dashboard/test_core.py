@@ -161,3 +161,20 @@ def test_a_reward_graph_adds_a_reward_row_and_the_minimal_abstraction() -> None:
     cdl = state.snapshot("c", now=2.0)["graph"]
     assert cdl["reward"] is None and cdl["abstraction"] == "cdl"
     assert state.snapshot("c", now=2.0)["history"][-1]["reward_f1"] is None
+
+
+def test_cells_carry_standard_errors_and_undecided_entries_where_the_report_has_them() -> None:
+    from dataclasses import replace
+
+    state = DashboardState()
+    plain = state.add_report("r", tiny_report(), now=5.0) and state.snapshot("r", now=6.0)["graph"]
+    assert "stderr" not in plain["cells"][0][1] and plain["undecided"] is None and plain["edge_rule"] == "fixed"
+    undecided = np.zeros((2, 3), np.uint8)
+    undecided[1, 1 - 1] = 1
+    tested = replace(tiny_report(timestamp=2.0, version=2), cmi_stderr=np.full((2, 3), 0.01, np.float32),
+                     undecided=undecided, edge_rule="fdr", fdr=0.05, min_cmi=5e-4)
+    assert state.add_report("r", tested, now=7.0)
+    graph = json.loads(json.dumps(state.snapshot("r", now=8.0)["graph"]))
+    assert graph["cells"][1][0] == {"cmi": pytest.approx(0.04), "learned": True, "truth": False, "outcome": "fp",
+                                    "stderr": pytest.approx(0.01), "undecided": True}
+    assert (graph["edge_rule"], graph["fdr"], graph["min_cmi"], graph["undecided"]) == ("fdr", 0.05, 5e-4, 1)

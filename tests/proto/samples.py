@@ -75,6 +75,8 @@ def graph_report() -> GraphReport:
         num_heldout=256, timestamp=1.7e9,
         reward_scores=np.array([0.5, 0.001, 0.0, 0.2], np.float32), reward_parents=np.array([1, 0, 0, 1], np.uint8),
         reward_threshold=0.01, true_reward_parents=np.array([1, 0, 1, 1], np.uint8),
+        cmi_stderr=np.full((3, 4), 0.004, np.float32), undecided=np.eye(3, 4, 1, dtype=np.uint8),
+        edge_rule="fdr", fdr=0.05, min_cmi=5e-4,
     )
 
 

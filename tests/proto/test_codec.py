@@ -114,8 +114,20 @@ def graph_reports(draw: Any) -> GraphReport:
         threshold=draw(finite), controllable=next(classes), action_relevant=next(classes),
         action_irrelevant=next(classes), metrics=draw(st.dictionaries(texts, finite, max_size=7)),
         true_graph=draw(st.none() | graphs(d, d + 1)),
-        num_heldout=draw(counters), timestamp=draw(finite), **draw(reward_graphs(d)),
+        num_heldout=draw(counters), timestamp=draw(finite), **draw(reward_graphs(d)), **draw(edge_tests(d)),
     )
+
+
+@st.composite
+def edge_tests(draw: Any, d: int) -> dict[str, Any]:
+    """A report's edge-test fields: the fixed rule without standard errors, or standard errors with
+    undecided entries under either rule (schema version 5)."""
+    if not draw(st.booleans()):
+        return {}
+    stderr = draw(hnp.arrays(np.float32, (d, d + 1), elements=st.floats(0, 1e3, width=32)))
+    rule = draw(st.sampled_from(("fixed", "fdr")))
+    return {"cmi_stderr": stderr, "undecided": draw(graphs(d, d + 1)), "edge_rule": rule,
+            "fdr": draw(st.floats(0, 0.999)) if rule == "fdr" else 0.0, "min_cmi": draw(st.floats(0, 1))}
 
 
 @st.composite

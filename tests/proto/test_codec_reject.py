@@ -78,6 +78,9 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("version bool", Control, put("schema_version", True)),
         ("version float", Control, put("schema_version", 1.0)),
         ("nested version", ScoredBatch, put("transitions.schema_version", 0)),
+        ("report before standard errors (v4)", GraphReport,
+         lambda raw: [raw.pop(k) for k in ("cmi_stderr", "undecided", "edge_rule", "fdr", "min_cmi")]
+         + [raw.update(schema_version=4)]),
     ],
     "bad_field": [
         # field set and Python types
@@ -128,6 +131,10 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("index out of range", GraphReport, put("controllable", [3])),
         ("negative index", GraphReport, put("action_irrelevant", [-1])),
         ("empty service", ServiceStats, put("service", "")),
+        ("report without edge rule", GraphReport, drop("edge_rule")),
+        ("unknown edge rule", GraphReport, put("edge_rule", "oracle")),
+        ("fdr of 1", GraphReport, put("fdr", 1.0)),
+        ("negative min_cmi", GraphReport, put("min_cmi", -1e-3)),
     ],
     "non_finite": [
         ("NaN state", TransitionBatch, put("state", nan_at(T.state))),
@@ -137,6 +144,7 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("inf cmi", GraphReport, put("cmi", nan_at(REPORT.cmi, -np.inf))),
         ("NaN reward score", GraphReport, put("reward_scores", nan_at(REPORT.reward_scores))),
         ("NaN threshold", GraphReport, put("threshold", float("nan"))),
+        ("NaN standard error", GraphReport, put("cmi_stderr", nan_at(REPORT.cmi_stderr))),
         ("inf metric", GraphReport, put("metrics.f1", float("inf"))),
         ("NaN local score", LocalGraphReport, put("scores", nan_at(LOCAL.scores))),
         ("inf scale", EnvSpec, put("factor_scales.0", float("inf"))),
@@ -169,6 +177,8 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("reward parents 2", GraphReport, put("reward_parents", wire(2 * REPORT.reward_parents))),
         ("reward parents 2-D", GraphReport, put("reward_parents", wire(REPORT.reward_parents[None]))),
         ("spec reward parents 2", EnvSpec, put("reward_parents", wire(2 * SPEC.reward_parents))),
+        ("negative standard error", GraphReport, put("cmi_stderr", wire(-REPORT.cmi_stderr))),
+        ("undecided 2", GraphReport, put("undecided", wire(2 * REPORT.undecided))),
     ],
     "too_large": [
         ("declared shape oversize", TransitionBatch, put("state.shape", [2**25, 1])),
@@ -203,6 +213,11 @@ CASES: dict[str, list[tuple[str, type, Mutation]]] = {
         ("reward parents length", GraphReport, put("reward_parents", wire(np.zeros(3, "u1")))),
         ("true reward parents length", GraphReport, put("true_reward_parents", wire(np.zeros(5, "u1")))),
         ("spec reward parents length", EnvSpec, put("reward_parents", wire(np.zeros(3, "u1")))),
+        ("standard error shape", GraphReport, put("cmi_stderr", wire(np.zeros((3, 3), np.float32)))),
+        ("undecided shape", GraphReport, put("undecided", wire(np.zeros((3, 3), "u1")))),
+        ("standard errors without undecided", GraphReport, put("undecided", None)),
+        ("fdr rule without standard errors", GraphReport,
+         lambda raw: (put("cmi_stderr", None)(raw), put("undecided", None)(raw))),
     ],
 }
 

@@ -1,4 +1,6 @@
 // The three heat maps (learned CMI, ground truth, comparison) with linked hover, and the CMI colour bar.
+// Where the report has standard errors, hover shows each entry's 95% interval and the learned map
+// outlines (dashed) the entries the held-out data cannot yet decide.
 // The local-graph panel reuses them for one example transition: its graph-like object carries
 // `labels` (score name and unit, what a found edge is called) where they differ from the global graph's.
 
@@ -89,6 +91,10 @@ class Heatmap {
       this.dots = rows.map((_, i) => cols.map((__, j) => svg('circle', {
         class: 'cell-dot', cx: x0 + (j + 0.5) * cell, cy: y0 + (i + 0.5) * cell, r: Math.max(1.5, cell * 0.14),
       }, group)));
+      this.undecided = rows.map((_, i) => cols.map((__, j) => svg('rect', {
+        class: 'cell-undecided', x: x0 + j * cell + 1.5, y: y0 + i * cell + 1.5, width: cell - 3, height: cell - 3,
+        rx: Math.min(2, cell / 6), visibility: 'hidden',
+      }, group)));
     }
     this.rowLabels = rowLabels;
     this.colLabels = colLabels;
@@ -108,6 +114,7 @@ class Heatmap {
         const dot = this.dots[i][j];
         dot.setAttribute('visibility', c.learned ? 'visible' : 'hidden');
         dot.setAttribute('fill', colour.dark ? '#ffffff' : '#0f172a');
+        this.undecided[i][j].setAttribute('visibility', c.undecided ? 'visible' : 'hidden');
       } else if (this.mode === 'truth') {
         rect.setAttribute('class', `cell ${c.truth == null ? 'outcome-none' : c.truth ? 'truth-edge' : 'truth-none'}`);
       } else {
@@ -158,11 +165,18 @@ export class GraphViews {
     const yesNo = (v) => (v == null ? 'unknown' : v ? 'edge' : 'no edge');
     const unit = labels.unit ? ` ${labels.unit}` : '';
     const effect = rowNames(graph)[i];
+    const tested = c.stderr == null ? [] : [
+      ['95% interval', `${fmt.cmi(c.cmi - 1.96 * c.stderr)} – ${fmt.cmi(c.cmi + 1.96 * c.stderr)}${unit}`],
+      ['decided', c.undecided ? 'no: the interval crosses the boundary' : 'yes'],
+    ];
+    const fdr = graph.edge_rule === 'fdr' && !reward;
     tooltip.show(`${graph.cause_names[j]} → ${effect}`, [
       ['cause (t)', graph.cause_names[j]],
       reward ? ['effect', 'reward r_t (causal reward model)'] : ['effect (t+1)', effect],
       [reward ? 'reward CMI' : labels.score, `${fmt.cmi(c.cmi)}${unit}`],
-      ['threshold ε', `${fmt.cmi(c.threshold ?? graph.threshold)}${unit}`],
+      ...tested,
+      fdr ? ['edge rule', `CMI > ${fmt.cmi(graph.min_cmi)} at FDR ${graph.fdr}`]
+        : ['threshold ε', `${fmt.cmi(c.threshold ?? graph.threshold)}${unit}`],
       [labels.learned, yesNo(c.learned)],
       ['truth', yesNo(c.truth)],
     ], c.outcome, event.clientX, event.clientY);
@@ -201,6 +215,15 @@ function renderColorbar(graph, container) {
   svg('text', { x: at(graph.threshold), y: 8, 'text-anchor': 'middle' }, bar, `ε = ${fmt.cmi(graph.threshold)}`);
   const dot = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
   svg('circle', { cx: 6, cy: 6, r: 3, fill: '#0f172a' }, dot.firstChild);
-  dot.append(`${labels.learned} edge (${labels.score} ≥ ε)`);
-  container.replaceChildren(bar, dot);
+  const rule = graph.edge_rule === 'fdr'
+    ? `test of ${labels.score} > ${fmt.cmi(graph.min_cmi)} at FDR ${graph.fdr}` : `${labels.score} ≥ ε`;
+  dot.append(`${labels.learned} edge (${rule})`);
+  const keys = [bar, dot];
+  if (graph.undecided != null) {
+    const box = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
+    svg('rect', { class: 'cell-undecided', x: 1, y: 1, width: 10, height: 10, rx: 2 }, box.firstChild);
+    box.append(`undecided (${graph.undecided})`);
+    keys.push(box);
+  }
+  container.replaceChildren(...keys);
 }

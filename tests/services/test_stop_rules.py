@@ -1,0 +1,71 @@
+"""The stop rule without ground truth (issue 22): the graph unchanged for a number of reports and a time,
+and no entry undecided in the newest report; checked on hand-made reports."""
+from __future__ import annotations
+
+import numpy as np
+
+from proto.messages import GraphReport
+from services.runtime.config import build_config
+from services.supervisor.config import RunConfig
+from services.supervisor.stop_rules import StableGraph, StopRules
+
+
+def report(version: int, edges: tuple[tuple[int, int], ...] = ((1, 0),), undecided: int = 0,
+           with_errors: bool = True) -> GraphReport:
+    """A two-factor report with ``edges`` (self-edges always) and ``undecided`` undecided entries."""
+    adjacency = np.eye(2, 3, dtype=np.uint8)
+    for cell in edges:
+        adjacency[cell] = 1
+    open_cells = np.zeros((2, 3), np.uint8)
+    open_cells.flat[[1, 2, 3, 5][:undecided]] = 1
+    tested = ({"cmi_stderr": np.full((2, 3), 1e-3, np.float32), "undecided": open_cells} if with_errors else {})
+    return GraphReport(kind="cdl", weights_version=version, env_steps=100 * version, updates=10 * version,
+                       factor_names=("a", "b"), cmi=np.zeros((2, 3), np.float32), adjacency=adjacency,
+                       threshold=0.02, controllable=(), action_relevant=(), action_irrelevant=(0, 1),
+                       timestamp=float(version), **tested)
+
+
+def test_stops_after_the_same_graph_for_enough_reports_and_nothing_undecided() -> None:
+    rule = StableGraph(reports=3, seconds=0.0)
+    assert rule.reason(report(1), 1.0) == "" and rule.reason(report(2), 2.0) == ""
+    assert rule.reason(report(2), 2.5) == ""  # the same report seen again is not counted again
+    assert "unchanged for 3 reports" in rule.reason(report(3), 3.0)
+
+
+def test_a_changed_graph_starts_the_count_over() -> None:
+    rule = StableGraph(reports=3, seconds=0.0)
+    for version in (1, 2):
+        rule.reason(report(version), float(version))
+    assert rule.reason(report(3, edges=((1, 0), (0, 2))), 3.0) == "" and rule.count == 1
+    assert rule.reason(report(4, edges=((1, 0), (0, 2))), 4.0) == ""
+    assert rule.reason(report(5, edges=((1, 0), (0, 2))), 5.0) != ""
+
+
+def test_undecided_entries_keep_the_run_going() -> None:
+    rule = StableGraph(reports=2, seconds=0.0)
+    assert rule.reason(report(1, undecided=1), 1.0) == ""
+    assert rule.reason(report(2, undecided=1), 2.0) == ""  # stable, but one entry undecided
+    assert rule.reason(report(3), 3.0) != ""  # still the same graph, now decided
+
+
+def test_time_and_reports_must_both_hold() -> None:
+    rule = StableGraph(reports=2, seconds=60.0)
+    assert rule.reason(report(1), 0.0) == "" and rule.reason(report(2), 30.0) == ""  # 2 reports, 30 s
+    assert rule.reason(report(2), 59.0) == ""
+    assert "60s" in rule.reason(report(2), 60.0)
+    only_time = StableGraph(reports=0, seconds=10.0)
+    assert only_time.reason(report(1), 0.0) == "" and only_time.reason(report(1), 10.0) != ""
+
+
+def test_off_by_default_and_without_standard_errors() -> None:
+    off = StableGraph(reports=0, seconds=0.0)
+    assert all(off.reason(report(v), float(v)) == "" for v in range(1, 5))
+    blind = StableGraph(reports=1, seconds=0.0)
+    assert blind.reason(report(1, with_errors=False), 1.0) == ""  # cannot tell what is undecided
+
+
+def test_stop_rules_report_the_stable_graph_before_the_budgets() -> None:
+    rules = StopRules(build_config(RunConfig, stable_reports=2, max_seconds=100.0), lambda: None)
+    assert rules.check(1.0, report(1), 0) == ""
+    assert rules.check(2.0, report(2), 0).startswith("graph stable")
+    assert rules.check(200.0, None, 0).startswith("time budget")
