@@ -55,8 +55,10 @@ class PretrainConfig:
 class HouseholdBatch:
     """``num`` envs stepped together, reset when an episode ends; states and true local graphs."""
 
-    def __init__(self, env: str, num: int, episode_length: int, seed: int) -> None:
+    def __init__(self, env: str, num: int, episode_length: int, seed: int, task: str = "") -> None:
         kwargs: dict[str, Any] = {"episode_length": episode_length} if episode_length else {}
+        if task:
+            kwargs["task"] = task
         self.envs = [make_env(env, **kwargs) for _ in range(num)]
         spec = self.envs[0].env_spec()
         self.sizes, self.objects = tuple(spec.factor_sizes), tuple(spec.factor_objects)
@@ -69,18 +71,24 @@ class HouseholdBatch:
         self.episodes += 1
         return env.reset(seed=self.seed * 1_000_003 + self.episodes)[0].astype(np.int64)
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(next states, local graphs [B, d, d+1], terminated, ended, states after resets)``."""
-        out = [env.step(int(a)) for env, a in zip(self.envs, actions)]
-        nxt = np.stack([o[0] for o in out]).astype(np.int64)
-        graphs = np.stack([o[4]["local_graph"] for o in out])
-        terminated = np.array([o[2] for o in out])
-        ended = terminated | np.array([o[3] for o in out])
+    def step(self, actions: np.ndarray, only: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(next states, local graphs [B, d, d+1], terminated, ended, states after resets, rewards)``;
+        with ``only`` (bool ``[B]``) the other envs stay as they are (no edge, not ended, reward 0)."""
+        d = len(self.sizes)
+        nxt, graphs = self.states.copy(), np.repeat(np.eye(d, d + 1, dtype=np.uint8)[None], len(self.envs), axis=0)
+        terminated, ended, rewards = (np.zeros(len(self.envs), bool), np.zeros(len(self.envs), bool),
+                                      np.zeros(len(self.envs)))
+        for i, (env, a) in enumerate(zip(self.envs, actions)):
+            if only is not None and not only[i]:
+                continue
+            obs, rewards[i], terminated[i], truncated, info = env.step(int(a))
+            nxt[i], graphs[i], ended[i] = obs, info["local_graph"], terminated[i] or truncated
         after = nxt.copy()
         for i in np.flatnonzero(ended):
             after[i] = self._reset(self.envs[i])
         self.states = after
-        return nxt, graphs, terminated, ended, after
+        return nxt, graphs, terminated, ended, after, rewards
 
 
 def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig, mode: str = "skild",
@@ -98,7 +106,7 @@ def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig,
                       * done_steps / max(learner.eps_decay_steps, 1))
         states = envs.states
         actions = agent.act(states, skills.factor, skills.row, skills.b, epsilon)
-        nxt, graphs, terminated, ended, after = envs.step(actions)
+        nxt, graphs, terminated, ended, after, _ = envs.step(actions)
         if learned is not None:
             graphs = learned.step(agent, states, actions, nxt)
         induced = object_graphs(graphs, envs.objects)
@@ -199,7 +207,7 @@ def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: 
             actions = rng.integers(0, envs.actions, num_envs)
         else:
             actions = agent.act(states, skills[1], skills[2], skills[3], epsilon)
-        _, graphs, _, ended, after = envs.step(actions)
+        _, graphs, _, ended, after, _ = envs.step(actions)
         keys = row_keys(object_graphs(graphs, envs.objects))
         for i in range(num_envs):
             seen[i].update(zip(range(n), keys[i].tolist()))

@@ -101,3 +101,17 @@ def test_learned_induced_graphs_keep_self_edges_and_give_unchanged_factors_nothi
     assert unchanged.any() and (graphs[unchanged].sum(axis=1) == 1).all()
     with pytest.raises(ValueError, match="graphs must be one of"):
         PretrainConfig(graphs="oracle")
+
+
+def test_task_policies_over_skills_and_primitives_report_success_curves(trained):
+    from causal.skild_task import SkillOptions, TaskConfig, train_task
+
+    agent, _ = trained
+    options = SkillOptions(agent)
+    assert options.count == len(agent.history.targets) * agent.k
+    factor, row, b = options.skills(np.array([0, options.count - 1]))
+    np.testing.assert_array_equal(b, [0, agent.k - 1])
+    tiny = TaskConfig(env_steps=300, num_envs=2, decisions=4)
+    for policy in (agent, None):
+        curve = train_task(policy, "installing-printer", "", tiny, seed=0, episode_length=20)
+        assert curve[-1][0] >= 300 and all(np.isnan(s) or 0 <= s <= 1 for _, s in curve)
