@@ -34,6 +34,8 @@ from envs.chemical import ChemicalEnv
 from envs.graphs import random_dag
 
 HELDOUT_SIZES = (1_000, 4_000, 16_000)
+MIN_CMI_SWEEP = (0.0, 5e-4, 1e-3, 2e-3, 5e-3)
+"""Minimum effect sizes the same estimate is also tested at (how the FDR reached depends on it)."""
 
 
 def chemical(graph: str, objects: int) -> dict[str, Any]:
@@ -79,10 +81,15 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
     weak = truth & scored_entries(truth.shape) & (estimate.cmi < 0.02)
     recall_weak = {n: float((fdr_graph(EdgeEstimate.from_pointwise(gains[:n]), args.fdr, args.min_cmi) & weak).sum()
                             / max(weak.sum(), 1)) for n in HELDOUT_SIZES}
+    tested = fdr_graph(estimate, args.fdr, args.min_cmi)
+    false = [[int(j), int(i), round(float(estimate.cmi[j, i]), 6), round(float(estimate.stderr[j, i]), 6)]
+             for j, i in zip(*np.nonzero(tested & ~truth))]
     return {"graph": graph, "seed": seed, "true_edges": int((truth & scored_entries(truth.shape)).sum()),
+            "false_discoveries": false,
             "weak_true_edges": int(weak.sum()), "fixed": scores(estimate.cmi >= 0.02, truth),
-            "fdr_graph": scores(fdr_graph(estimate, args.fdr, args.min_cmi), truth),
-            "oracle_f1": oracle["best_threshold_f1"], "weak_recall_by_heldout": recall_weak}
+            "fdr_graph": scores(tested, truth),
+            "oracle_f1": oracle["best_threshold_f1"], "weak_recall_by_heldout": recall_weak,
+            "by_min_cmi": {str(m): scores(fdr_graph(estimate, args.fdr, m), truth) for m in MIN_CMI_SWEEP}}
 
 
 def table(rows: list[dict[str, Any]], fdr: float) -> str:
