@@ -115,3 +115,12 @@ def test_task_policies_over_skills_and_primitives_report_success_curves(trained)
     for policy in (agent, None):
         curve = train_task(policy, "installing-printer", "", tiny, seed=0, episode_length=20)
         assert curve[-1][0] >= 300 and all(np.isnan(s) or 0 <= s <= 1 for _, s in curve)
+
+
+def test_a_seeded_pretraining_run_repeats_exactly():
+    run = PretrainConfig(env="installing-printer", env_steps=160, num_envs=4)
+    first, _ = pretrain(run, SkiLDConfig(eligible_after=5), TINY, seed=3)
+    second, _ = pretrain(run, SkiLDConfig(eligible_after=5), TINY, seed=3)
+    assert first.history.state_dict() == second.history.state_dict()
+    for a, b in zip(first.q.parameters(), second.q.parameters()):
+        assert torch.equal(a, b)
