@@ -190,6 +190,54 @@ def test_max_and_drop_one_gradient_matches_autograd() -> None:
     torch.testing.assert_close(ours, feats.grad)
 
 
+def test_masked_max_matches_masked_fill_and_autograd() -> None:
+    from causal.cdl import masked_max
+    torch.manual_seed(1)
+    feats = torch.randn(3, 5, 4, 2, dtype=torch.float64, requires_grad=True)
+    keep = torch.rand(3, 5) > 0.5
+    keep[:, 0] = True
+    weights = torch.randn(3, 1, 4, 2, dtype=torch.float64)
+    ours = masked_max(feats, keep)
+    (ours * weights).sum().backward()
+    grad, feats.grad = feats.grad.clone(), None
+    plain = feats.masked_fill(~keep[:, :, None, None], float("-inf")).amax(dim=1, keepdim=True)
+    (plain * weights).sum().backward()
+    torch.testing.assert_close(ours, plain, rtol=0, atol=0)
+    torch.testing.assert_close(grad, feats.grad, rtol=0, atol=0)
+
+
+def _plain_training_nll(model: CDLModel, state, action, next_state, parents, drop) -> torch.Tensor:
+    """Eq. 3.3's three terms with masked_fill and autograd's amax only (the computation before the
+    custom aggregations): the reference the training step must equal."""
+    feats = model.features(state, action)
+    dropped = torch.zeros(feats.shape[:2], dtype=torch.bool)[:, :, None, None].expand(-1, -1, *feats.shape[2:])
+    dropped = dropped.clone().scatter_(1, drop.expand(-1, -1, -1, feats.shape[-1]), True)
+    keep = model.to_group_order(parents)[:, :, None, None]
+    terms = [feats.amax(dim=1, keepdim=True), feats.masked_fill(dropped, float("-inf")).amax(dim=1, keepdim=True),
+             feats.masked_fill(~keep, float("-inf")).amax(dim=1, keepdim=True)]
+    return model.nll(model.predict(torch.cat(terms, dim=1)), state, next_state)
+
+
+def test_training_step_equals_the_plain_masked_computation() -> None:
+    """The custom aggregations (top two by a running max, -inf biases, gradients routed to the
+    arg-max) give eq. 3.3's loss and gradient of the plain masked_fill/amax computation."""
+    torch.manual_seed(2)
+    model = CDLModel(LAYOUT, CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)).double()
+    s, a, n = (t.double() for t in toy_batch(np.random.default_rng(3), 32))
+    parents = torch.rand(LAYOUT.num_factors, LAYOUT.num_factors + 1) > 0.5
+    parents[range(LAYOUT.num_factors), range(LAYOUT.num_factors)] = True
+    nll = model.training_nll(s, a, n, parents, torch.Generator().manual_seed(4))
+    nll.mean(dim=2).sum().backward()
+    ours = {name: p.grad.clone() for name, p in model.named_parameters()}
+    model.zero_grad()
+    drop = torch.randint(0, model.num_inputs, (model.num_outputs, 1, s.shape[0], 1), generator=torch.Generator().manual_seed(4))
+    plain = _plain_training_nll(model, s, a, n, parents, drop)
+    plain.mean(dim=2).sum().backward()
+    torch.testing.assert_close(nll, plain, rtol=1e-12, atol=1e-12)
+    for name, p in model.named_parameters():
+        torch.testing.assert_close(ours[name], p.grad, rtol=1e-10, atol=1e-12, msg=name)
+
+
 def test_same_seed_same_data_gives_identical_training() -> None:
     """A seeded run is reproducible: two trainers, same seed and data, bit-identical parameters."""
     cfg = CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)
