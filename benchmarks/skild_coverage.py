@@ -43,11 +43,14 @@ def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed:
         start = time.process_time()
         agent, _ = pretrain(run, SkiLDConfig(), SkillLearnerConfig(), mode=mode, seed=seed)
         trained = time.process_time() - start
-        rows = coverage(agent, env, episodes, episode_length, seed=10_000 + seed, skill_steps=agent.cfg.skill_steps)
+        hits: dict[str, int] = {}
+        rows = coverage(agent, env, episodes, episode_length, seed=10_000 + seed, skill_steps=agent.cfg.skill_steps,
+                        hits=hits)
         out[mode] = {"rows": rows, "train_cpu_s": trained, "updates": agent.updates,
-                     "targets": len(agent.history.targets)}
+                     "targets": len(agent.history.targets), "target_hits": hits}
         print(f"seed {seed} {mode}: {trained:.0f} CPU s, {agent.updates} updates, "
-              f"{len(agent.history.targets)} targets", flush=True)
+              f"{len(agent.history.targets)} targets, {hits.get('induced', 0)} of {hits.get('segments', 0)} "
+              "random skills induced their target", flush=True)
     if "random" in methods:
         out["random"] = {"rows": coverage(None, env, episodes, episode_length, seed=10_000 + seed)}
     return out
@@ -88,7 +91,8 @@ def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_leng
     lines = table(results, objects, methods)
     text = markdown(lines, methods)
     budget = {m: {"train_cpu_s": [r[m]["train_cpu_s"] for r in results], "updates": [r[m]["updates"] for r in results],
-                  "targets": [r[m]["targets"] for r in results]} for m in methods if m != "random"}
+                  "targets": [r[m]["targets"] for r in results],
+                  "target_hits": [r[m]["target_hits"] for r in results]} for m in methods if m != "random"}
     name = env if graphs == "true" else f"{env}-{graphs}"
     (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
                                                  "episodes": episodes, "episode_length": episode_length,

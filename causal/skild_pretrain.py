@@ -23,7 +23,7 @@ import torch
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
-from causal.skild import SkiLDConfig, key_rows, novelty_reward, object_graphs, object_names, row_keys
+from causal.skild import SkiLDConfig, graph_matches, key_rows, novelty_reward, object_graphs, object_names, row_keys
 from causal.skild_agent import SkillLearnerConfig, SkiLDAgent
 from envs.registry import make_env
 from proto.settings import doc
@@ -191,9 +191,11 @@ class _Skills:
 
 
 def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: int, seed: int,
-             skill_steps: int = 20, num_envs: int = 20, epsilon: float = 0.05) -> dict[tuple[int, int], float]:
+             skill_steps: int = 20, num_envs: int = 20, epsilon: float = 0.05,
+             hits: dict[str, int] | None = None) -> dict[tuple[int, int], float]:
     """Share of ``episodes`` that induce each ``(factor, row key)`` at least once, under random skills
-    (greedy skill policy with ``epsilon``) or, with ``agent=None``, random primitives."""
+    (greedy skill policy with ``epsilon``) or, with ``agent=None``, random primitives. ``hits``, if
+    given, receives ``segments`` (skills run with a target) and ``induced`` (those that induced it)."""
     envs = HouseholdBatch(env, num_envs, episode_length, seed)
     n = len(object_names(envs.objects))
     rng = np.random.default_rng(seed)
@@ -201,6 +203,8 @@ def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: 
     finished: list[set[tuple[int, int]]] = []
     skills = agent.select(envs.states, uniform=True) if agent else None
     left = np.full(num_envs, skill_steps)
+    reached = np.zeros(num_envs, bool)
+    tally = {"segments": 0, "induced": 0}
     while len(finished) < episodes:
         states = envs.states
         if agent is None:
@@ -208,12 +212,19 @@ def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: 
         else:
             actions = agent.act(states, skills[1], skills[2], skills[3], epsilon)
         _, graphs, _, ended, after, _ = envs.step(actions)
-        keys = row_keys(object_graphs(graphs, envs.objects))
+        induced = object_graphs(graphs, envs.objects)
+        keys = row_keys(induced)
         for i in range(num_envs):
             seen[i].update(zip(range(n), keys[i].tolist()))
+        if agent is not None:
+            reached |= graph_matches(induced, skills[1], skills[2])
         left -= 1
         renew = np.flatnonzero((left <= 0) | ended)
         if agent is not None and len(renew):
+            targeted = renew[skills[0][renew] >= 0]
+            tally["segments"] += len(targeted)
+            tally["induced"] += int(reached[targeted].sum())
+            reached[renew] = False
             fresh = agent.select(after[renew], uniform=True)
             for part, new in zip(skills, fresh):
                 part[renew] = new
@@ -221,6 +232,8 @@ def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: 
         for i in np.flatnonzero(ended):
             finished.append(seen[i])
             seen[i] = set()
+    if hits is not None:
+        hits.update(tally)
     counts: dict[tuple[int, int], int] = {}
     for episode in finished[:episodes]:
         for key in episode:

@@ -124,3 +124,10 @@ def test_a_seeded_pretraining_run_repeats_exactly():
     assert first.history.state_dict() == second.history.state_dict()
     for a, b in zip(first.q.parameters(), second.q.parameters()):
         assert torch.equal(a, b)
+
+
+def test_coverage_counts_the_random_skills_that_induced_their_target(trained):
+    agent, _ = trained
+    hits: dict[str, int] = {}
+    coverage(agent, "installing-printer", episodes=4, episode_length=30, seed=2, num_envs=2, hits=hits)
+    assert hits["segments"] >= 4 and 0 <= hits["induced"] <= hits["segments"]
