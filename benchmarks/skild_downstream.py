@@ -9,6 +9,7 @@ last quarter of updates). One thread; budgets (env steps, CPU seconds) are print
 
     python -m benchmarks.skild_downstream [--env installing-printer] [--task ""] [--pretrain-steps 30000]
         [--task-steps 30000] [--seeds 0 1 2] [--episode-length 0] [--out runs/skild-downstream]
+        [--end-on-target]
 """
 from __future__ import annotations
 
@@ -29,10 +30,11 @@ METHODS = ("skild", "diayn", "ppo")
 TITLES = {"skild": "SkiLD skills", "diayn": "DIAYN skills", "ppo": "PPO from scratch"}
 
 
-def one_seed(env: str, task: str, pretrain_steps: int, task_steps: int, episode_length: int, seed: int) -> dict:
+def one_seed(env: str, task: str, pretrain_steps: int, task_steps: int, episode_length: int, seed: int,
+             end_on_target: bool = False) -> dict:
     """Success curves per method for one seed, and the CPU seconds spent."""
     out: dict = {}
-    tasks = TaskConfig(env_steps=task_steps)
+    tasks = TaskConfig(env_steps=task_steps, end_on_target=end_on_target)
     for mode in METHODS:
         start = time.process_time()
         agent = None
@@ -71,16 +73,17 @@ def markdown(results: list[dict], task_steps: int) -> str:
 
 
 def main(env: str, task: str, pretrain_steps: int, task_steps: int, seeds: list[int], episode_length: int,
-         out: Path) -> None:
+         out: Path, end_on_target: bool = False) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     wall = time.time()
-    results = [one_seed(env, task, pretrain_steps, task_steps, episode_length, s) for s in seeds]
+    results = [one_seed(env, task, pretrain_steps, task_steps, episode_length, s, end_on_target) for s in seeds]
     text = markdown(results, task_steps)
-    name = f"{env}-{task}" if task else env
+    name = (f"{env}-{task}" if task else env) + ("-end-on-target" if end_on_target else "")
     (out / f"{name}.json").write_text(json.dumps({"env": env, "task": task, "pretrain_steps": pretrain_steps,
                                                   "task_steps": task_steps, "seeds": seeds,
-                                                  "episode_length": episode_length, "wall_s": time.time() - wall,
+                                                  "episode_length": episode_length,
+                                                  "end_on_target": end_on_target, "wall_s": time.time() - wall,
                                                   "results": results}, indent=1))
     (out / f"{name}.md").write_text(text)
     print(text)
@@ -97,5 +100,8 @@ if __name__ == "__main__":
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--episode-length", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/skild-downstream"))
+    parser.add_argument("--end-on-target", action="store_true",
+                        help="a SkiLD skill also ends when it induces its target (the chapter: L steps always)")
     args = parser.parse_args()
-    main(args.env, args.task, args.pretrain_steps, args.task_steps, args.seeds, args.episode_length, args.out)
+    main(args.env, args.task, args.pretrain_steps, args.task_steps, args.seeds, args.episode_length, args.out,
+         args.end_on_target)

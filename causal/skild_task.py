@@ -19,6 +19,7 @@ import torch
 
 from causal.rl.base import ActionSpec, RolloutBatch
 from causal.rl.ppo import PPOAgent, PPOConfig
+from causal.skild import graph_matches, object_graphs
 from causal.skild_agent import SkiLDAgent, one_hot_states
 from causal.skild_pretrain import HouseholdBatch
 from proto.settings import doc
@@ -34,6 +35,8 @@ class TaskConfig:
     lr: float = doc(3e-4, "Adam learning rate of the task policy")
     gamma: float = doc(0.99, "discount per decision")
     entropy_coef: float = doc(0.01, "entropy bonus of the task policy")
+    end_on_target: bool = doc(False, "a SkiLD skill also ends on the step it induces its target graph (the "
+                                     "chapter runs every skill for L steps)")
 
 
 class SkillOptions:
@@ -68,7 +71,7 @@ def train_task(agent: SkiLDAgent | None, env: str, task: str, cfg: TaskConfig, s
                    PPOConfig(lr=cfg.lr, gamma=cfg.gamma, entropy_coef=cfg.entropy_coef, hidden=(64, 64)), seed=seed)
     steps, curve = 0, []
     while steps < cfg.env_steps:
-        batch, taken, successes, episodes = _rollout(ppo, agent, options, envs, cfg.decisions)
+        batch, taken, successes, episodes = _rollout(ppo, agent, options, envs, cfg.decisions, cfg.end_on_target)
         ppo.update(batch)
         steps += taken
         curve.append((steps, successes / episodes if episodes else float("nan")))
@@ -76,14 +79,15 @@ def train_task(agent: SkiLDAgent | None, env: str, task: str, cfg: TaskConfig, s
 
 
 def _rollout(ppo: PPOAgent, agent: SkiLDAgent | None, options: SkillOptions | None, envs: HouseholdBatch,
-             decisions: int) -> tuple[RolloutBatch, int, int, int]:
+             decisions: int, end_on_target: bool) -> tuple[RolloutBatch, int, int, int]:
     n = len(envs.envs)
     obs, acts, logps, values, rewards, dones = [], [], [], [], [], []
     taken = successes = episodes = 0
     for _ in range(decisions):
         x = one_hot_states(envs.states, envs.sizes)
         step = ppo.policy_step(x)
-        reward, done, used, won = _execute(agent, options, envs, np.asarray(step.env_actions, dtype=np.int64))
+        reward, done, used, won = _execute(agent, options, envs, np.asarray(step.env_actions, dtype=np.int64),
+                                           end_on_target)
         taken, successes, episodes = taken + used, successes + won, episodes + int(done.sum())
         obs.append(x), acts.append(step.actions), logps.append(step.log_probs), values.append(step.values)
         rewards.append(torch.as_tensor(reward, dtype=torch.float32)), dones.append(torch.as_tensor(done))
@@ -95,22 +99,25 @@ def _rollout(ppo: PPOAgent, agent: SkiLDAgent | None, options: SkillOptions | No
 
 
 def _execute(agent: SkiLDAgent | None, options: SkillOptions | None, envs: HouseholdBatch,
-             chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Run one decision in every env: a primitive, or a skill for up to ``L`` steps.
-    Returns ``(reward sum, episode ended, env steps taken, successes)``."""
+             chosen: np.ndarray, end_on_target: bool = False) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Run one decision in every env: a primitive, or a skill for up to ``L`` steps (with
+    ``end_on_target``, until it induces its target). Returns ``(reward sum, episode ended, env steps
+    taken, successes)``."""
     n = len(envs.envs)
-    reward, ended = np.zeros(n), np.zeros(n, bool)
+    reward, ended, stopped = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
     if agent is None:
         _, _, terminated, done, _, r = envs.step(chosen)
         return r, done, n, int(terminated.sum())
     factor, row, b = options.skills(chosen)
     used = won = 0
     for _ in range(agent.cfg.skill_steps):
-        active = ~ended
+        active = ~(ended | stopped)
         if not active.any():
             break
         primitive = agent.act(envs.states, factor, row, b, epsilon=0.0)
-        _, _, terminated, done, _, r = envs.step(primitive, only=active)
+        _, graphs, terminated, done, _, r = envs.step(primitive, only=active)
+        if end_on_target and agent.mode == "skild":
+            stopped |= active & graph_matches(object_graphs(graphs, envs.objects), factor, row)
         reward += np.where(active, r, 0.0)
         won += int((terminated & active).sum())
         ended |= done & active

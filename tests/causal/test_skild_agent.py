@@ -112,9 +112,24 @@ def test_task_policies_over_skills_and_primitives_report_success_curves(trained)
     factor, row, b = options.skills(np.array([0, options.count - 1]))
     np.testing.assert_array_equal(b, [0, agent.k - 1])
     tiny = TaskConfig(env_steps=300, num_envs=2, decisions=4)
-    for policy in (agent, None):
-        curve = train_task(policy, "installing-printer", "", tiny, seed=0, episode_length=20)
+    for policy, cfg in ((agent, tiny), (agent, TaskConfig(**{**tiny.__dict__, "end_on_target": True})), (None, tiny)):
+        curve = train_task(policy, "installing-printer", "", cfg, seed=0, episode_length=20)
         assert curve[-1][0] >= 300 and all(np.isnan(s) or 0 <= s <= 1 for _, s in curve)
+
+
+def test_a_skill_that_ends_on_its_target_stops_on_the_step_it_induces_it(trained):
+    from causal.skild_pretrain import HouseholdBatch
+    from causal.skild_task import SkillOptions, _execute
+
+    agent, _ = trained
+    options = SkillOptions(agent)
+    self_only = [o for o in range(options.count) if options.skills(np.array([o]))[1][0].sum() == 1
+                 and options.skills(np.array([o]))[0][0] == 1]  # the table: only its self-edge, every step
+    envs = HouseholdBatch("installing-printer", 3, 0, seed=0)
+    _, ended, used, _ = _execute(agent, options, envs, np.full(3, self_only[0]), end_on_target=True)
+    assert used == 3 and not ended.any()
+    _, _, used, _ = _execute(agent, options, envs, np.full(3, self_only[0]), end_on_target=False)
+    assert used == 3 * agent.cfg.skill_steps
 
 
 def test_a_seeded_pretraining_run_repeats_exactly():
