@@ -90,6 +90,8 @@ class DynamicsLearnerCore:
         return True
 
     def weights(self) -> Weights:
+        """The next version of the weights. A caller that publishes it records it first with
+        :meth:`record_version`, so a restarted learner never publishes a version twice."""
         self.version += 1
         return Weights(model=self.method.name, version=self.version, config_json=self.trainer.config_json(),
                        tensors=export_tensors(self.trainer.model), updates=self.trainer.updates,
@@ -111,14 +113,43 @@ class DynamicsLearnerCore:
                          "version": self.version, "env_steps": self.env_steps,
                          "graph_version": self.graph_version}, path)
 
+    @staticmethod
+    def version_path(checkpoint: Path) -> Path:
+        """The high-water mark of published versions, beside the checkpoint (a small JSON file)."""
+        return checkpoint.with_suffix(".version.json")
+
+    def record_version(self, checkpoint: Path) -> None:
+        """Record ``self.version`` as published (atomically), before it is published.
+
+        The checkpoint is written every ``checkpoint_every_s`` and weights every ``publish_every_s``,
+        so a learner killed between two checkpoints has published versions its checkpoint does not
+        know; consumers ignore versions they have seen, and a resumed learner that counted from the
+        checkpoint's version was ignored until it passed them (issue 20). One tiny file per publish."""
+        path = self.version_path(checkpoint)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"version": self.version}))
+        tmp.replace(path)
+
+    def _published_version(self, checkpoint: Path) -> int:
+        try:
+            return int(json.loads(self.version_path(checkpoint).read_text())["version"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return 0
+
     def restore(self, path: Path) -> bool:
+        """Resume from the checkpoint at ``path``; versions continue above any published before,
+        whether or not a checkpoint exists (a learner restarted without one starts a new model, and
+        its weights must still be newer than what consumers hold)."""
+        self.version = max(self.version, self._published_version(path))
         saved = load_checkpoint(path)
         if saved is None:
             return False
         check_fingerprint(saved, self.fingerprint(), path)
         self.trainer.load_state_dict(saved["trainer"])
         self.replay.load_state_dict(saved["replay"])
-        self.version, self.env_steps = int(saved["version"]), int(saved["env_steps"])
+        self.version = max(int(saved["version"]), self._published_version(path))
+        self.env_steps = int(saved["env_steps"])
         self.graph_version = int(saved["graph_version"])
         self.resumed_at_update = self.trainer.updates
         return True

@@ -130,8 +130,10 @@ def _drain(core: DynamicsLearnerCore, transitions, graphs, shell: ServiceShell) 
         core.apply_graph(report)
 
 
-def _publish(shell: ServiceShell, core, latest, metrics: _Metrics) -> None:
-    metrics.weights_bytes.inc(shell.set_latest(latest, core.weights()))
+def _publish(shell: ServiceShell, core: DynamicsLearnerCore, latest, metrics: _Metrics) -> None:
+    weights = core.weights()
+    core.record_version(shell.checkpoint_path)
+    metrics.weights_bytes.inc(shell.set_latest(latest, weights))
     metrics.version.set(core.version)
 
 

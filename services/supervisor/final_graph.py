@@ -16,6 +16,7 @@ existed, or stopped early) and adds it to the run's summary.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -23,10 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from causal.method import export_tensors
+from causal.methods import get_method
 from proto.messages import EnvSpec, GraphReport, LocalGraphReport, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.checkpoint import load_checkpoint
+from services.runtime.device import DEVICES, resolve_device
 from services.supervisor import report as reporting
 from services.supervisor import report_local as local_report
 from services.supervisor.report_reward import plot_abstraction
@@ -95,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="causeway final-graph", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", type=Path, required=True, help="a finished run (with its checkpoints)")
+    p.add_argument("--device", choices=DEVICES, default="auto",
+                   help="where the CMI is computed (default auto: cuda if torch sees one, else cpu), whatever "
+                        "device the run trained on: its checkpoints are device-independent")
     args = p.parse_args(argv)
     summary_path = args.run_dir / "summary.json"
     try:
@@ -104,7 +110,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"causeway final-graph: {args.run_dir} is not a finished run: {exc}", file=sys.stderr)
         return 2
     started = time.perf_counter()
-    final, local = final_reports(args.run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
+    try:
+        resolve_device(args.device, get_method(cfg.method).devices)
+    except ValueError as exc:
+        print(f"causeway final-graph: {exc}", file=sys.stderr)
+        return 2
+    evaluator_cfg = dataclasses.replace(service_configs(cfg, "")["graph-evaluator"], device=args.device)
+    final, local = final_reports(args.run_dir, evaluator_cfg, run_env_spec(cfg))
     if final is None and local is None:
         print(f"causeway final-graph: {args.run_dir} has no learner and evaluator checkpoints", file=sys.stderr)
         return 1

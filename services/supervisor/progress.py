@@ -9,6 +9,9 @@ from proto.messages import GraphReport, ServiceStats
 
 
 CUMULATIVE = ("env_steps", "episodes", "updates")
+RESUMED = {"updates": "resumed_at_update"}
+"""Counters a restarted process resumes from its checkpoint (the learner's updates): already totals
+of the model's updates, so a fall is work lost since the checkpoint, not a count restarting at 0."""
 
 
 class Progress:
@@ -27,11 +30,14 @@ class Progress:
 
     def on_stats(self, stats: ServiceStats) -> None:
         """Keep the newest beat per instance; a counter that falls (a restarted process counting
-        from zero again) carries its previous total, so run totals never go backwards."""
+        from zero again) carries its previous total, so run totals never go backwards. A counter
+        the process resumes from its checkpoint (:data:`RESUMED`) is taken as it is."""
         ident = (stats.service, stats.instance)
         previous = self.stats.get(ident)
         if previous is not None:
             for key in CUMULATIVE:
+                if RESUMED.get(key, "") in stats.values:
+                    continue
                 if stats.values.get(key, 0.0) < previous.values.get(key, 0.0):
                     self.carried[ident + (key,)] = self.carried.get(ident + (key,), 0.0) + previous.values[key]
         self.stats[ident] = stats

@@ -41,7 +41,8 @@ def start_stack(run_dir: Path, port: int) -> subprocess.Popen[str]:
     cmd = [sys.executable, "-m", "services.cli", "run", "--graph", "chain", "--num-objects", "3", "--workers", "1",
            "--router-port", str(port), "--metrics-base-port", "0", "--worker-max-steps-per-second", "500", "--progress", "false",
            "--run-dir", str(run_dir), "--max-seconds", "240", "--checkpoint-every-s", "600",
-           "--evaluator-min-interval-s", "1", "--learner-publish-every-s", "1", "--dashboard-port", "0"]
+           "--evaluator-min-interval-s", "1", "--learner-publish-every-s", "1", "--dashboard-port", "0",
+           "--evaluate", "false"]  # the operator commands are under test, not the post-run evaluation
     return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -88,14 +89,16 @@ def test_status_scale_kill_checkpoint_stop(tmp_path: Path, capsys: pytest.Captur
         one_worker = first["totals"]["env-worker"]["rate"]
         learner_pid = causeway.processes()["dynamics-learner"]["pid"]
 
-        code, out = causeway("scale", "env-worker", "2")
+        # a new worker imports torch and the env before it is alive: 10 s (the default) is too short
+        # on a loaded 2-core machine
+        code, out = causeway("scale", "env-worker", "2", "--timeout-s", "90")
         assert code == 0 and "env-worker: 1 -> 2 alive" in out, out
         two = wait_for(lambda: (d := causeway.status()) and alive_with_rates(d, 2) and d, 30, "two env-workers beating")
         assert two["totals"]["env-worker"]["rate"] > 1.5 * one_worker, (one_worker, two["totals"])
         assert causeway.processes()["dynamics-learner"]["pid"] == learner_pid  # raised without a restart
 
         transitions = rows(two, "dynamics-learner")[0]["values"]["env_steps"]
-        code, out = causeway("scale", "env-worker", "1")
+        code, out = causeway("scale", "env-worker", "1", "--timeout-s", "90")
         assert code == 0 and "env-worker: 2 -> 1 alive" in out, out
         after = causeway.status()
         assert [r["state"] for r in rows(after, "env-worker")] == ["alive"]
@@ -112,7 +115,7 @@ def test_status_scale_kill_checkpoint_stop(tmp_path: Path, capsys: pytest.Captur
 
         code, out = causeway("stop")
         assert code == 0 and "stopped:" in out, out
-        stack_out, _ = stack.communicate(timeout=60)
+        stack_out, _ = stack.communicate(timeout=180)
     finally:
         if stack.poll() is None:
             stack.send_signal(signal.SIGINT)

@@ -94,6 +94,10 @@ def test_progress_totals_survive_a_restarted_counter() -> None:
         p.on_stats(ServiceStats("env-worker", "0", {"env_steps": steps}))
     p.on_stats(ServiceStats("env-worker", "1", {"env_steps": 20.0}))
     assert p.env_steps() == 300 + 80 + 20
+    # a learner resumes its update count from its checkpoint: 1,200 done, killed, resumed at 1,000
+    for updates, resumed in ((800.0, 0.0), (1200.0, 0.0), (1000.0, 1000.0), (1100.0, 1000.0)):
+        p.on_stats(ServiceStats("dynamics-learner", "0", {"updates": updates, "resumed_at_update": resumed}))
+    assert p.updates() == 1100
 
 
 def test_object_level_graph_collapses_factors() -> None:

@@ -3,6 +3,8 @@ weights and checkpoints stay device-independent. Runs on CPU (no GPU is needed: 
 simulated; tensors made on the wrong device are caught on torch's ``meta`` device)."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -167,3 +169,22 @@ def test_cdl_keeps_every_tensor_it_makes_on_its_inputs_device() -> None:
     assert dense.is_meta and causal.is_meta and model.head_w1.grad is not None
     with pytest.raises(AssertionError, match="mixes meta tensors with CPU tensors"), _OneDevice():
         model.drop_one_gain(s, a, torch.zeros(16, worker.spec.state_dim))
+
+
+def test_final_graph_of_a_cuda_run_is_computed_on_the_cpu(tmp_path, capsys, no_cuda) -> None:
+    """``causeway final-graph`` takes its own ``--device`` (default auto), not the one the run trained on."""
+    from services.runtime.config import write_config
+
+    core, worker = _trained_learner("cpu")
+    evaluator = GraphEvaluatorCore(build_config(GraphEvaluatorConfig), worker.spec)
+    for _ in range(4):
+        evaluator.ingest(worker.collect())
+    core.checkpoint(tmp_path / "checkpoints" / "dynamics-learner-0.pt")
+    evaluator.checkpoint(tmp_path / "checkpoints" / "graph-evaluator-0.pt")
+    model = {k: v for k, v in SMALL.items() if k.startswith("cdl_")}
+    write_config(build_config(RunConfig, graph="chain", num_objects=3, device="cuda", **model), tmp_path / "config.json")
+    (tmp_path / "summary.json").write_text("{}")
+    assert cli_main(["final-graph", "--run-dir", str(tmp_path), "--device", "cuda"]) == 2
+    assert "--device cuda: torch sees no CUDA device here" in capsys.readouterr().err
+    assert cli_main(["final-graph", "--run-dir", str(tmp_path)]) == 0
+    assert "final_graph" in json.loads((tmp_path / "summary.json").read_text())

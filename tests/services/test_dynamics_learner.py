@@ -62,6 +62,24 @@ def test_resume_keeps_the_ratio(tmp_path) -> None:
     assert (resumed.trainer.updates, resumed.env_steps) == (core.trainer.updates, 256) and not resumed.may_update
 
 
+def test_a_resumed_learner_publishes_versions_above_any_it_published(tmp_path) -> None:
+    """Killed after publishing versions its checkpoint does not know, a learner resumes above them."""
+    ckpt = tmp_path / "dynamics-learner-0.pt"
+    core, worker = learner_and_worker(0.0)
+    core.ingest(worker.collect())
+    train_while_allowed(core, limit=3)
+    core.weights()
+    core.checkpoint(ckpt)  # at version 1
+    for _ in range(4):  # published after the checkpoint: 2..5
+        core.weights()
+        core.record_version(ckpt)
+    resumed, _ = learner_and_worker(0.0)
+    assert resumed.restore(ckpt) and resumed.weights().version == 6
+    fresh, _ = learner_and_worker(0.0)  # the checkpoint lost: still above what was published
+    ckpt.unlink()
+    assert not fresh.restore(ckpt) and fresh.weights().version == 6
+
+
 def test_run_flag_reaches_the_learner() -> None:
     cfg = parse_config(RunConfig, ["--learner-updates-per-env-step", "0.01", "--catch-up-timeout-s", "30"], {})
     assert (cfg.learner.updates_per_env_step, cfg.catch_up_timeout_s) == (0.01, 30.0)
