@@ -88,13 +88,21 @@ bench-ch3: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m pyflakes services proto envs causal benchmarks
 
-up:
+# Grafana's admin password: generated once per checkout (mode 600, git-ignored), read by compose as
+# a secret; GRAFANA_ADMIN_PASSWORD_FILE=path uses another file instead.
+GRAFANA_SECRET := deploy/secrets/grafana-admin-password
+
+$(GRAFANA_SECRET):
+	@mkdir -p $(dir $@) && umask 077 && $(PYTHON) -c "import secrets; print(secrets.token_urlsafe(24))" > $@
+	@echo "Grafana admin password generated in $@ (user admin)"
+
+up: $(GRAFANA_SECRET)
 	$(COMPOSE) up -d --build
 
 down:
 	$(COMPOSE) down
 
-scale:
+scale: $(GRAFANA_SECRET)
 	$(COMPOSE) up -d --scale env-worker=$(N) --no-recreate
 
 logs:

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import tomllib
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -192,3 +193,26 @@ def test_compose_files_follow_the_compose_specification(relative: str) -> None:
     errors = [f"{'/'.join(map(str, e.absolute_path))}: {e.message}"
               for e in jsonschema.Draft7Validator(schema).iter_errors(yaml.safe_load((REPO / relative).read_text()))]
     assert not errors, errors
+
+
+def test_grafana_has_no_default_password(compose: dict[str, Any]) -> None:
+    """The admin password is a compose secret read from a file, never a value with a default."""
+    grafana = compose["services"]["grafana"]
+    assert "GF_SECURITY_ADMIN_PASSWORD" not in grafana["environment"]
+    assert grafana["environment"]["GF_SECURITY_ADMIN_PASSWORD__FILE"] == "/run/secrets/grafana-admin-password"
+    assert [s if isinstance(s, str) else s["source"] for s in grafana["secrets"]] == ["grafana-admin-password"]
+    assert "admin}" not in (REPO / "compose.yaml").read_text()
+
+
+def test_make_generates_a_private_grafana_password_once(tmp_path: Path) -> None:
+    secret = tmp_path / "secrets" / "grafana-admin-password"
+    make = ["make", "-s", "-C", str(REPO), f"GRAFANA_SECRET={secret}", str(secret)]
+    subprocess.run(make, check=True, capture_output=True, timeout=60)
+    first = secret.read_text().strip()
+    assert len(first) >= 24 and first != "admin" and secret.stat().st_mode & 0o077 == 0
+    subprocess.run(make, check=True, capture_output=True, timeout=60)
+    assert secret.read_text().strip() == first  # kept: a second `make up` does not change it
+    other = tmp_path / "other"
+    subprocess.run(["make", "-s", "-C", str(REPO), f"GRAFANA_SECRET={other}", str(other)], check=True,
+                   capture_output=True, timeout=60)
+    assert other.read_text().strip() != first
