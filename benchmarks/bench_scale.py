@@ -11,7 +11,7 @@ and writes a log-log plot; ``--profile`` prints where an update and a CMI evalua
 time at the largest size.
 
     python -m benchmarks.bench_scale [--sizes 5 10 20 40] [--graphs full random] [--budget 300]
-        [--out benchmark-results/scale] [--profile]
+        [--out benchmark-results/scale] [--profile] [--eval 2000] [--heldout 20000]
 
 Timings are of this 2-core machine with one torch thread; the exponents, not the seconds, are the
 result to carry elsewhere.
@@ -65,13 +65,15 @@ def timed(fn, repeats: int) -> float:
     return (time.perf_counter() - started) / repeats
 
 
-def one_size(graph: str, objects: int, budget: float, seed: int = 0) -> dict[str, Any]:
-    """Every figure of one (graph, size); run in its own process."""
+def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: int = HELD_OUT,
+             evaluation: int = EVAL) -> dict[str, Any]:
+    """Every figure of one (graph, size); run in its own process. ``evaluation`` transitions per CMI
+    evaluation (2,000 as the evaluator's), ``heldout`` for the final graph (20,000)."""
     torch.set_num_threads(1)
     env = make_env(graph, objects)
     layout = FactorLayout.from_spec(env.env_spec())
     train, held = collect(graph, objects, TRANSITIONS, seed)
-    held = tuple(x[:HELD_OUT] for x in held)
+    held = tuple(x[:heldout] for x in held)
     trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
     rng = np.random.default_rng(seed)
 
@@ -82,8 +84,8 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0) -> dict[str
     timed(update, 3)  # warm-up
     out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors,
                            "parameters": sum(p.numel() for p in trainer.model.parameters()),
-                           "update_s": timed(update, 10)}
-    sample = tuple(x[:EVAL] for x in held)
+                           "update_s": timed(update, 10), "cmi_samples": evaluation, "final_samples": len(held[0])}
+    sample = tuple(x[:evaluation] for x in held)
     out["cmi_2k_s"] = timed(lambda: trainer.model.cmi(*sample), 2)
     out["final_graph_s"] = timed(lambda: trainer.model.cmi(*held), 1)
     out.update(time_to_f1(trainer, update, sample, env.global_graph, budget))
@@ -161,21 +163,26 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--budget", type=float, default=300.0, help="seconds per size for the time to F1 0.9")
     p.add_argument("--out", type=Path, default=Path("benchmark-results/scale"))
     p.add_argument("--profile", action="store_true")
+    p.add_argument("--eval", type=int, default=EVAL, help="transitions per CMI evaluation (the s/CMI column and "
+                   "the F1 checks); fewer for a quick run on a loaded machine")
+    p.add_argument("--heldout", type=int, default=HELD_OUT, help="held-out transitions of the final graph")
     p.add_argument("--one", nargs=2, metavar=("GRAPH", "OBJECTS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.one:
-        print(json.dumps(one_size(args.one[0], int(args.one[1]), args.budget)))
+        print(json.dumps(one_size(args.one[0], int(args.one[1]), args.budget, heldout=args.heldout,
+                                  evaluation=args.eval)))
         return
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for graph in args.graphs:
         for n in args.sizes:
             result = subprocess.run([sys.executable, "-m", "benchmarks.bench_scale", "--one", graph, str(n),
-                                     "--budget", str(args.budget)], capture_output=True, text=True, check=True)
+                                     "--budget", str(args.budget), "--eval", str(args.eval), "--heldout",
+                                     str(args.heldout)], capture_output=True, text=True, check=True)
             rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
             print(json.dumps(rows[-1]), flush=True)
     (args.out / "scale.json").write_text(json.dumps(rows, indent=1))
-    print("\n| graph | objects | d_S | parameters | s/update | s/CMI (2k) | s final graph (20k) | peak RSS MB | "
+    print(f"\n| graph | objects | d_S | parameters | s/update | s/CMI ({args.eval:,}) | s final graph ({args.heldout:,}) | peak RSS MB | "
           "s to best F1 0.9 | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         reach = f"{r['to_f1_0.9_s']:.0f}" if r["to_f1_0.9_s"] else f"> {r['budget_s']:.0f}"
