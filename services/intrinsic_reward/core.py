@@ -33,7 +33,8 @@ class IntrinsicRewardCore:
         if self.reward.source == "dynamics" and cfg.reward not in method.intrinsic:
             raise ValueError(f"reward {cfg.reward!r} reads the dynamics model; method {method.name!r} serves "
                              f"{', '.join(method.intrinsic) or 'none'}")
-        self.device = resolve_device(cfg.device, method.devices if self.reward.source == "dynamics" else ("cpu",))
+        self.device = (resolve_device(cfg.device, method.devices) if self.reward.source == "dynamics"
+                       else torch.device("cpu"))
         """Where the dynamics model scores batches (the ensemble of an ``ensemble`` reward stays on the CPU)."""
         self.model: nn.Module | None = None
         self.model_config = ""

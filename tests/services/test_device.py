@@ -188,3 +188,21 @@ def test_final_graph_of_a_cuda_run_is_computed_on_the_cpu(tmp_path, capsys, no_c
     assert "--device cuda: torch sees no CUDA device here" in capsys.readouterr().err
     assert cli_main(["final-graph", "--run-dir", str(tmp_path)]) == 0
     assert "final_graph" in json.loads((tmp_path / "summary.json").read_text())
+
+
+def test_each_model_service_picks_the_device_its_model_can_use(monkeypatch) -> None:
+    """With a GPU (simulated: nothing is moved before weights arrive), CDL's learner-side models take
+    it; the intrinsic-reward's own ensemble and CPU-only methods stay on the CPU."""
+    from services.intrinsic_reward.config import IntrinsicRewardConfig
+    from services.intrinsic_reward.core import IntrinsicRewardCore
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    spec = EnvWorkerCore(build_config(EnvWorkerConfig, graph="chain", num_objects=3)).spec
+    cuda = torch.device("cuda")
+    assert GraphEvaluatorCore(build_config(GraphEvaluatorConfig, device="auto"), spec).device == cuda
+    assert GraphEvaluatorCore(build_config(GraphEvaluatorConfig, device="cpu"), spec).device == torch.device("cpu")
+    assert IntrinsicRewardCore(IntrinsicRewardConfig(device="cuda"), spec).device == cuda
+    ensemble = IntrinsicRewardCore(IntrinsicRewardConfig(device="cuda", reward="disagreement"), spec)
+    assert ensemble.device == torch.device("cpu")
+    cbm = GraphEvaluatorCore(build_config(GraphEvaluatorConfig, method="cbm", device="auto"), spec)
+    assert cbm.device == torch.device("cpu")
