@@ -11,7 +11,7 @@ mean over those rows. One thread; the budget (env steps, updates, wall seconds) 
 
     python -m benchmarks.skild_coverage [--env installing-printer] [--env-steps 100000] [--seeds 0 1 2]
         [--episodes 500] [--episode-length 0] [--out runs/skild-coverage] [--graphs true|pcmi]
-        [--methods skild diayn random]
+        [--methods skild diayn random] [--updates-per-step 1] [--eps-decay-steps 40000]
 
 ``--graphs pcmi`` pre-trains SkiLD on the point-wise CMI graphs of a CDL model trained on the run's
 own transitions instead of the true ones (the output is then ``<env>-pcmi.json``).
@@ -35,13 +35,14 @@ TITLES = {"skild": "SkiLD", "diayn": "DIAYN", "random": "random primitives"}
 
 
 def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed: int, graphs: str,
-             methods: tuple[str, ...]) -> dict[str, dict]:
+             methods: tuple[str, ...], learner: SkillLearnerConfig, updates_per_step: int) -> dict[str, dict]:
     """Coverage per method for one seed: ``{method: {"rows": {(factor, key): share}, "train_cpu_s": ...}}``."""
     out: dict[str, dict] = {}
-    run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length, graphs=graphs)
+    run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length, graphs=graphs,
+                         updates_per_step=updates_per_step)
     for mode in (m for m in ("skild", "diayn") if m in methods):
         start = time.process_time()
-        agent, _ = pretrain(run, SkiLDConfig(), SkillLearnerConfig(), mode=mode, seed=seed)
+        agent, _ = pretrain(run, SkiLDConfig(), learner, mode=mode, seed=seed)
         trained = time.process_time() - start
         hits: dict[str, int] = {}
         rows = coverage(agent, env, episodes, episode_length, seed=10_000 + seed, skill_steps=agent.cfg.skill_steps,
@@ -80,14 +81,16 @@ def markdown(lines: list[dict], methods: tuple[str, ...]) -> str:
 
 
 def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_length: int, out: Path,
-         graphs: str = "true", methods: tuple[str, ...] = METHODS) -> None:
+         graphs: str = "true", methods: tuple[str, ...] = METHODS, learner: SkillLearnerConfig = SkillLearnerConfig(),
+         updates_per_step: int = 1) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     from envs.registry import make_env
     objects = object_names(make_env(env).env_spec().factor_objects)
     wall = time.time()
     methods = tuple(m for m in METHODS if m in methods)
-    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods) for s in seeds]
+    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods, learner, updates_per_step)
+               for s in seeds]
     lines = table(results, objects, methods)
     text = markdown(lines, methods)
     budget = {m: {"train_cpu_s": [r[m]["train_cpu_s"] for r in results], "updates": [r[m]["updates"] for r in results],
@@ -95,6 +98,8 @@ def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_leng
                   "target_hits": [r[m]["target_hits"] for r in results]} for m in methods if m != "random"}
     name = env if graphs == "true" else f"{env}-{graphs}"
     (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
+                                                 "updates_per_step": updates_per_step,
+                                                 "eps_decay_steps": learner.eps_decay_steps,
                                                  "episodes": episodes, "episode_length": episode_length,
                                                  "wall_s": time.time() - wall, "budget": budget, "table": lines},
                                                 indent=1))
@@ -114,6 +119,9 @@ if __name__ == "__main__":
     parser.add_argument("--graphs", choices=("true", "pcmi"), default="true",
                         help="SkiLD's induced graphs: the true local graphs or a learned model's pCMI")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    parser.add_argument("--updates-per-step", type=int, default=1,
+                        help="skill-policy updates per batched env step (16 transitions)")
+    parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
     args = parser.parse_args()
     main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out, args.graphs,
-         tuple(args.methods))
+         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step)

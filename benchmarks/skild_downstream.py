@@ -9,7 +9,7 @@ last quarter of updates). One thread; budgets (env steps, CPU seconds) are print
 
     python -m benchmarks.skild_downstream [--env installing-printer] [--task ""] [--pretrain-steps 30000]
         [--task-steps 30000] [--seeds 0 1 2] [--episode-length 0] [--out runs/skild-downstream]
-        [--end-on-target]
+        [--end-on-target] [--updates-per-step 1] [--eps-decay-steps 40000]
 """
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ TITLES = {"skild": "SkiLD skills", "diayn": "DIAYN skills", "ppo": "PPO from scr
 
 
 def one_seed(env: str, task: str, pretrain_steps: int, task_steps: int, episode_length: int, seed: int,
-             end_on_target: bool = False) -> dict:
+             end_on_target: bool = False, learner: SkillLearnerConfig = SkillLearnerConfig(),
+             updates_per_step: int = 1) -> dict:
     """Success curves per method for one seed, and the CPU seconds spent."""
     out: dict = {}
     tasks = TaskConfig(env_steps=task_steps, end_on_target=end_on_target)
@@ -39,8 +40,9 @@ def one_seed(env: str, task: str, pretrain_steps: int, task_steps: int, episode_
         start = time.process_time()
         agent = None
         if mode != "ppo":
-            run = PretrainConfig(env=env, env_steps=pretrain_steps, episode_length=episode_length)
-            agent, _ = pretrain(run, SkiLDConfig(), SkillLearnerConfig(), mode=mode, seed=seed)
+            run = PretrainConfig(env=env, env_steps=pretrain_steps, episode_length=episode_length,
+                                 updates_per_step=updates_per_step)
+            agent, _ = pretrain(run, SkiLDConfig(), learner, mode=mode, seed=seed)
         curve = train_task(agent, env, task, tasks, seed=seed, episode_length=episode_length)
         out[mode] = {"curve": curve, "cpu_s": time.process_time() - start}
         print(f"seed {seed} {mode}: final {final(curve):.2f}, {out[mode]['cpu_s']:.0f} CPU s", flush=True)
@@ -73,17 +75,21 @@ def markdown(results: list[dict], task_steps: int) -> str:
 
 
 def main(env: str, task: str, pretrain_steps: int, task_steps: int, seeds: list[int], episode_length: int,
-         out: Path, end_on_target: bool = False) -> None:
+         out: Path, end_on_target: bool = False, learner: SkillLearnerConfig = SkillLearnerConfig(),
+         updates_per_step: int = 1) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     wall = time.time()
-    results = [one_seed(env, task, pretrain_steps, task_steps, episode_length, s, end_on_target) for s in seeds]
+    results = [one_seed(env, task, pretrain_steps, task_steps, episode_length, s, end_on_target, learner,
+                        updates_per_step) for s in seeds]
     text = markdown(results, task_steps)
     name = (f"{env}-{task}" if task else env) + ("-end-on-target" if end_on_target else "")
     (out / f"{name}.json").write_text(json.dumps({"env": env, "task": task, "pretrain_steps": pretrain_steps,
                                                   "task_steps": task_steps, "seeds": seeds,
                                                   "episode_length": episode_length,
-                                                  "end_on_target": end_on_target, "wall_s": time.time() - wall,
+                                                  "end_on_target": end_on_target,
+                                                  "updates_per_step": updates_per_step,
+                                                  "eps_decay_steps": learner.eps_decay_steps, "wall_s": time.time() - wall,
                                                   "results": results}, indent=1))
     (out / f"{name}.md").write_text(text)
     print(text)
@@ -102,6 +108,9 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, default=Path("runs/skild-downstream"))
     parser.add_argument("--end-on-target", action="store_true",
                         help="a SkiLD skill also ends when it induces its target (the chapter: L steps always)")
+    parser.add_argument("--updates-per-step", type=int, default=1,
+                        help="skill-policy updates per batched env step of pre-training (16 transitions)")
+    parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
     args = parser.parse_args()
     main(args.env, args.task, args.pretrain_steps, args.task_steps, args.seeds, args.episode_length, args.out,
-         args.end_on_target)
+         args.end_on_target, SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step)
