@@ -81,6 +81,12 @@ class ChemicalPixelsEnv(ChemicalEnv):
             return None
         return self.render_states(self._observation()[None])[0][0]
 
+    def sample_states(self, count: int) -> np.ndarray:
+        """``count`` states (float ``[count, 3N]``) drawn as :meth:`reset` draws one (uniform colours, a
+        fresh layout), from this env's generator: a seeded source of frames for representation learning."""
+        colors = self.np_random.integers(0, self.num_colors, size=(count, self.num_objects))
+        return self._pack(colors, self._draw_positions((count, self.num_objects, 2)))
+
     def render_states(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Frames and instance labels of a batch of states (float ``[B, 3N]``), vectorised over the batch.
 

@@ -1,0 +1,143 @@
+"""Table 7.1 analogue (chapter 7, Dyn-O): FG-ARI of slot masks against the renderer's exact masks.
+
+For each seed: frames of ``chemical-pixels`` (states drawn as ``reset`` draws them) train the frame
+autoencoder (Enc/Dec of eq. 7.1, then frozen and shared by the three variants, as the Cosmos
+tokenizer is in the chapter), then slot attention and the slot decoder are trained on eq. 7.1 three
+times, with the same initial weights and batches:
+
+- ``annealed`` (Dyn-O): the masks are dropped with probability log(1 + u) / log(1 + U);
+- ``none`` (SOLV): never masks;
+- ``always`` (the oracle): always masks.
+
+Each is scored by FG-ARI on frames from an unseen seed without masks at inference (the chapter's
+question: does the slot binding survive without the segmenter?), and the oracle also with its masks
+at inference (the chapter's definition of the oracle row). Budgets are update counts, so a loaded
+machine gives the same numbers, only later; one torch thread.
+
+    python -m benchmarks.slots_table [--seeds 0 1 2] [--slot-updates 1500] [--out benchmark-results/slots/table.json]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from causal.fg_ari import fg_ari
+from causal.slots import SlotConfig, SlotModel, SlotTrainer, fit_autoencoder, token_masks
+from envs.chemical_pixels import ChemicalPixelsEnv
+
+VARIANTS = ("annealed", "none", "always")
+EVAL_SEED_OFFSET = 10_000
+"""Evaluation frames come from env seed ``seed + EVAL_SEED_OFFSET``: unseen in training."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """What one seed trains on and for how long (update counts, not seconds)."""
+
+    num_objects: int = 4
+    frame_size: int = 32
+    train_frames: int = 4096
+    eval_frames: int = 512
+    ae_updates: int = 600
+    slot_updates: int = 1500
+    log_every: int = 250
+
+
+def frames_of(env: ChemicalPixelsEnv, seed: int, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``count`` frames and label maps from ``env`` reset with ``seed``."""
+    env.reset(seed=seed)
+    frames, labels = env.render_states(env.sample_states(count))
+    return torch.from_numpy(frames), torch.from_numpy(labels.astype(np.int64))
+
+
+def score(model: SlotModel, frames: torch.Tensor, labels: torch.Tensor, with_masks: bool) -> float:
+    """Mean FG-ARI over the frames, the masks given to slot attention or not."""
+    model.eval()
+    scores = []
+    for start in range(0, len(frames), 128):
+        f, lab = frames[start : start + 128], labels[start : start + 128]
+        allowed = token_masks(lab, model.config.num_slots) if with_masks else None
+        scores.append(fg_ari(lab.numpy(), model.segment(f, allowed).numpy()))
+    return float(np.nanmean(np.concatenate(scores)))
+
+
+def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: dict[str, Any],
+                  train: tuple[torch.Tensor, torch.Tensor]) -> tuple[SlotModel, dict[str, Any]]:
+    """Slot attention and decoder trained with mask prior ``variant``; the model and its training record."""
+    torch.manual_seed(seed)
+    config = SlotConfig(num_slots=budget.num_objects + 1, mask_prior=variant)
+    model = SlotModel(config, budget.frame_size)
+    model.autoencoder.load_state_dict(autoencoder_state)
+    model.autoencoder.requires_grad_(False)
+    trainer = SlotTrainer(model, budget.slot_updates, seed=seed)
+    batches = torch.Generator().manual_seed(seed)
+    started, losses = time.perf_counter(), {}
+    for u in range(1, budget.slot_updates + 1):
+        idx = torch.randint(len(train[0]), (config.batch_size,), generator=batches)
+        losses = trainer.update(train[0][idx], train[1][idx])
+        if u % budget.log_every == 0:
+            print(f"  seed {seed} {variant}: update {u} {losses}", file=sys.stderr, flush=True)
+    return model, {"train_seconds": time.perf_counter() - started, "final_losses": losses}
+
+
+def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
+    """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames."""
+    torch.manual_seed(seed)
+    env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
+    train = frames_of(env, seed, budget.train_frames)
+    test = frames_of(env, seed + EVAL_SEED_OFFSET, budget.eval_frames)
+    base = SlotModel(SlotConfig(num_slots=budget.num_objects + 1), budget.frame_size)
+    started = time.perf_counter()
+    ae_loss = fit_autoencoder(base.autoencoder, train[0], budget.ae_updates, seed=seed)
+    out: dict[str, Any] = {"seed": seed, "autoencoder": {"final_mse": ae_loss, "seconds": time.perf_counter() - started}}
+    for variant in VARIANTS:
+        model, record = train_variant(variant, seed, budget, base.autoencoder.state_dict(), train)
+        record["slots"] = {"fg_ari": score(model, *test, with_masks=False)}
+        if variant == "always":
+            record["fg_ari_with_masks"] = score(model, *test, with_masks=True)
+        out[variant] = record
+        print(f"seed {seed} {variant}: {record}", file=sys.stderr, flush=True)
+    return out
+
+
+def table(results: list[dict[str, Any]]) -> str:
+    """Markdown: FG-ARI per variant, mean and standard deviation over seeds."""
+    def cell(values: list[float]) -> str:
+        return f"{np.mean(values):.2f} +- {np.std(values):.2f}" if len(values) > 1 else f"{values[0]:.2f}"
+    rows = ["| mask prior | FG-ARI, no masks at inference | FG-ARI, masks at inference | train s (mean) |",
+            "|---|---|---|---|"]
+    for variant in VARIANTS:
+        no_masks = [r[variant]["slots"]["fg_ari"] for r in results]
+        with_masks = [r[variant]["fg_ari_with_masks"] for r in results if "fg_ari_with_masks" in r[variant]]
+        seconds = np.mean([r[variant]["train_seconds"] for r in results])
+        rows.append(f"| {variant} | {cell(no_masks)} | {cell(with_masks) if with_masks else '-'} | {seconds:.0f} |")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    for f in dataclasses.fields(Budget):
+        p.add_argument(f"--{f.name.replace('_', '-')}", type=int, default=f.default)
+    p.add_argument("--out", type=Path, default=Path("benchmark-results/slots/table.json"))
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    budget = Budget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Budget)})
+    results = []
+    for seed in args.seeds:
+        results.append(run_seed(seed, budget))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": results}, indent=1))
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()

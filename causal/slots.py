@@ -1,0 +1,244 @@
+"""Dyn-O's slot representation (dissertation section 7.2.1, eq. 7.1): frames -> slots -> reconstruction.
+
+    e = Enc(o),  xi = Slot-Attn(xi_init, e, m),  e^ = Slot-Dec(xi),  o^ = Dec(e^)
+    L_slot = ||e - e^||^2 + ||o - o^||^2                                            (eq. 7.1)
+
+- ``Enc``/``Dec``: a small convolutional autoencoder trained here on the frames first and then frozen
+  (:class:`FrameAutoencoder`), in the place of the frozen Cosmos tokenizer (no pretrained weights can
+  be downloaded here: a deviation, docs/deviations.md).
+- ``Slot-Attn``: iterative slot attention (Locatello et al. 2020; section 2.7) from K learnable initial
+  slots, batched, with a GRU and MLP refinement; an optional attention mask ``m`` lets slot ``k`` attend
+  only to the feature tokens of segment ``k`` (the mask prior).
+- ``Slot-Dec``: a spatial-broadcast decoder over feature tokens (each slot plus a learned position
+  embedding -> a per-token MLP -> features and an alpha logit; the alphas, normalised over slots, mix
+  the features and are the slots' masks).
+- The mask prior: during training a frame's masks are dropped with probability
+  log(1 + u) / log(1 + U) (u updates done of U), so at the end slots bind without masks and inference
+  needs none. The renderer's exact masks (envs/chemical_pixels.py) stand in for SAM2's.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from proto.settings import doc
+
+MASK_PRIORS = ("annealed", "none", "always")
+FEATURE_STRIDE = 4
+"""Pixels per feature token along each side (the frame autoencoder halves the resolution twice)."""
+
+
+@dataclass(frozen=True)
+class SlotConfig:
+    """Dyn-O's slot representation (eq. 7.1): sizes, optimiser and the mask-prior schedule."""
+
+    num_slots: int = doc(5, "K: slots per frame (objects and background)")
+    feature_dim: int = doc(16, "d_e: channels of the frame autoencoder's feature tokens")
+    slot_dim: int = doc(32, "d_xi: size of one slot")
+    attention_dim: int = doc(32, "d_SA: size of slot attention's queries and keys")
+    iterations: int = doc(3, "T_SA: slot-attention refinement steps")
+    decoder_hidden: int = doc(32, "hidden width of the slot decoder's per-token MLP")
+    lr: float = doc(1e-3, "Adam learning rate of slot attention and the slot decoder")
+    batch_size: int = doc(32, "frames per update")
+    mask_prior: str = doc("annealed", "annealed: drop the masks with probability log(1+u)/log(1+U); "
+                                      "none: never use them (SOLV); always: always (the oracle)", choices=MASK_PRIORS)
+
+    def __post_init__(self) -> None:
+        if min(self.num_slots, self.feature_dim, self.slot_dim, self.attention_dim, self.iterations,
+               self.decoder_hidden, self.batch_size) < 1 or not self.lr > 0:
+            raise ValueError("slot sizes, iterations, batch size and lr must be positive")
+        if self.mask_prior not in MASK_PRIORS:
+            raise ValueError(f"mask_prior must be one of {MASK_PRIORS}, got {self.mask_prior!r}")
+
+
+def drop_probability(updates_done: int, total_updates: int) -> float:
+    """Chance of training a frame without its masks: log(1 + u) / log(1 + U) (0 at the start, 1 at the end)."""
+    return math.log1p(min(updates_done, total_updates)) / math.log1p(total_updates) if total_updates > 0 else 1.0
+
+
+def frames_to_tensor(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 ``[B, H, W, 3]`` frames -> float ``[B, 3, H, W]`` in [0, 1]."""
+    return frames.permute(0, 3, 1, 2).float() / 255.0
+
+
+def token_masks(labels: torch.Tensor, num_slots: int, stride: int = FEATURE_STRIDE) -> torch.Tensor:
+    """bool ``[B, K, n]``: which feature tokens (``stride`` x ``stride`` pixel blocks) segment ``k`` of the
+    label maps ``[B, H, W]`` touches. Every token touches some segment, so each has an allowed slot."""
+    if int(labels.max()) >= num_slots:
+        raise ValueError(f"labels up to {int(labels.max())} need more than {num_slots} slots")
+    onehot = F.one_hot(labels.long(), num_slots).permute(0, 3, 1, 2).float()
+    return (F.avg_pool2d(onehot, stride) > 0).flatten(2)
+
+
+class FrameAutoencoder(nn.Module):
+    """Enc/Dec of eq. 7.1: frames ``[B, 3, H, W]`` <-> feature tokens ``[B, d_e, H/4, W/4]``."""
+
+    def __init__(self, feature_dim: int, width: int = 16) -> None:
+        super().__init__()
+        self.encoder = nn.Sequential(
+            nn.Conv2d(3, width, 4, stride=2, padding=1), nn.ReLU(), nn.Conv2d(width, width, 3, padding=1),
+            nn.ReLU(), nn.Conv2d(width, feature_dim, 4, stride=2, padding=1))
+        self.decoder = nn.Sequential(
+            nn.ConvTranspose2d(feature_dim, width, 4, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(width, width, 3, padding=1), nn.ReLU(), nn.ConvTranspose2d(width, 3, 4, stride=2, padding=1))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.encoder(images))
+
+
+class SlotAttention(nn.Module):
+    """Iterative slot attention over tokens ``[B, n, d_in]`` from K learnable initial slots."""
+
+    def __init__(self, input_dim: int, config: SlotConfig) -> None:
+        super().__init__()
+        k, d = config.num_slots, config.slot_dim
+        self.iterations, self.scale = config.iterations, config.attention_dim ** -0.5
+        self.initial = nn.Parameter(torch.randn(k, d) * d ** -0.5)
+        self.norm_tokens, self.norm_slots = nn.LayerNorm(input_dim), nn.LayerNorm(d)
+        self.to_q = nn.Linear(d, config.attention_dim, bias=False)
+        self.to_k = nn.Linear(input_dim, config.attention_dim, bias=False)
+        self.to_v = nn.Linear(input_dim, d, bias=False)
+        self.gru = nn.GRUCell(d, d)
+        self.mlp = nn.Sequential(nn.LayerNorm(d), nn.Linear(d, 2 * d), nn.ReLU(), nn.Linear(2 * d, d))
+
+    def forward(self, tokens: torch.Tensor, allowed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Slots ``[B, K, d_xi]`` and the last attention ``[B, K, n]`` (normalised over slots);
+        ``allowed`` (bool ``[B, K, n]``) is the mask prior: slot ``k`` sees only its tokens."""
+        tokens = self.norm_tokens(tokens)
+        keys, values = self.to_k(tokens), self.to_v(tokens)
+        slots = self.initial.expand(len(tokens), -1, -1)
+        for _ in range(self.iterations):
+            logits = torch.einsum("bkd,bnd->bkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
+            if allowed is not None:
+                logits = logits.masked_fill(~allowed, -1e9)
+            attention = logits.softmax(dim=1)
+            weights = attention / (attention.sum(dim=2, keepdim=True) + 1e-8)
+            updates = weights @ values
+            slots = self.gru(updates.flatten(0, 1), slots.flatten(0, 1)).view_as(slots)
+            slots = slots + self.mlp(slots)
+        return slots, attention
+
+
+class SlotDecoder(nn.Module):
+    """Slot-Dec: each slot broadcast over the ``n`` token positions -> features and an alpha logit."""
+
+    def __init__(self, num_tokens: int, feature_dim: int, config: SlotConfig) -> None:
+        super().__init__()
+        self.position = nn.Parameter(torch.randn(num_tokens, config.slot_dim) * 0.02)
+        h = config.decoder_hidden
+        self.mlp = nn.Sequential(nn.Linear(config.slot_dim, h), nn.ReLU(), nn.Linear(h, h), nn.ReLU(),
+                                 nn.Linear(h, feature_dim + 1))
+
+    def forward(self, slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mixed features ``[B, n, d_e]`` and the alpha masks ``[B, K, n]`` (a softmax over slots)."""
+        out = self.mlp(slots[:, :, None, :] + self.position)
+        alpha = out[..., -1].softmax(dim=1)
+        return (alpha[..., None] * out[..., :-1]).sum(dim=1), alpha
+
+
+class SlotOutput(NamedTuple):
+    slots: torch.Tensor
+    attention: torch.Tensor
+    features: torch.Tensor
+    features_hat: torch.Tensor
+    alpha: torch.Tensor
+    reconstruction: torch.Tensor
+
+
+class SlotModel(nn.Module):
+    """Frames ``[B, H, W, 3]`` (uint8) -> K slots, their masks and the reconstruction of eq. 7.1."""
+
+    def __init__(self, config: SlotConfig, frame_size: int) -> None:
+        super().__init__()
+        self.config, self.frame_size, self.grid = config, frame_size, frame_size // FEATURE_STRIDE
+        d_e = config.feature_dim
+        self.autoencoder = FrameAutoencoder(d_e)
+        self.position = nn.Linear(4, d_e)
+        self.token_mlp = nn.Sequential(nn.LayerNorm(d_e), nn.Linear(d_e, d_e), nn.ReLU(), nn.Linear(d_e, d_e))
+        self.slot_attention = SlotAttention(d_e, config)
+        self.slot_decoder = SlotDecoder(self.grid * self.grid, d_e, config)
+        axis = torch.linspace(0.0, 1.0, self.grid)
+        y, x = torch.meshgrid(axis, axis, indexing="ij")
+        self.register_buffer("grid_coords", torch.stack([x, y, 1 - x, 1 - y], -1).view(-1, 4), persistent=False)
+
+    def slot_parameters(self) -> list[nn.Parameter]:
+        """What eq. 7.1 trains: everything but the (frozen) frame autoencoder."""
+        return [p for name, p in self.named_parameters() if not name.startswith("autoencoder.")]
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """e: the frozen encoder's tokens ``[B, n, d_e]`` of images ``[B, 3, H, W]``."""
+        with torch.no_grad():
+            return self.autoencoder.encoder(images).flatten(2).transpose(1, 2)
+
+    def forward(self, frames: torch.Tensor, allowed: torch.Tensor | None = None) -> SlotOutput:
+        features = self.features(frames_to_tensor(frames))
+        tokens = self.token_mlp(features + self.position(self.grid_coords))
+        slots, attention = self.slot_attention(tokens, allowed)
+        features_hat, alpha = self.slot_decoder(slots)
+        grid = features_hat.transpose(1, 2).reshape(len(frames), -1, self.grid, self.grid)
+        return SlotOutput(slots, attention, features, features_hat, alpha, self.autoencoder.decoder(grid))
+
+    def loss(self, frames: torch.Tensor, out: SlotOutput) -> tuple[torch.Tensor, dict[str, float]]:
+        """eq. 7.1: feature reconstruction plus image reconstruction (mean squared errors)."""
+        feature = F.mse_loss(out.features_hat, out.features)
+        image = F.mse_loss(out.reconstruction, frames_to_tensor(frames))
+        return feature + image, {"feature_mse": float(feature.detach()), "image_mse": float(image.detach())}
+
+    @torch.no_grad()
+    def segment(self, frames: torch.Tensor, allowed: torch.Tensor | None = None) -> torch.Tensor:
+        """Each pixel's slot (int ``[B, H, W]``): the argmax of the alpha masks, upsampled bilinearly."""
+        alpha = self(frames, allowed).alpha.view(len(frames), -1, self.grid, self.grid)
+        return F.interpolate(alpha, size=self.frame_size, mode="bilinear", align_corners=False).argmax(dim=1)
+
+
+class SlotTrainer:
+    """Trains slot attention and the slot decoder on eq. 7.1 with the mask prior of ``config.mask_prior``
+    over ``total_updates`` updates (the frame autoencoder is trained before, by :func:`fit_autoencoder`)."""
+
+    def __init__(self, model: SlotModel, total_updates: int, seed: int = 0) -> None:
+        self.model, self.config, self.total_updates = model, model.config, total_updates
+        self.optimizer = torch.optim.Adam(model.slot_parameters(), lr=self.config.lr)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.updates = 0
+
+    def masks_for(self, labels: torch.Tensor) -> torch.Tensor | None:
+        """This update's attention masks: each frame's own, or all-allowed where the prior is dropped."""
+        if self.config.mask_prior == "none":
+            return None
+        allowed = token_masks(labels, self.config.num_slots)
+        if self.config.mask_prior == "always":
+            return allowed
+        dropped = torch.rand(len(labels), generator=self.generator) < drop_probability(self.updates, self.total_updates)
+        return allowed | dropped[:, None, None]
+
+    def update(self, frames: torch.Tensor, labels: torch.Tensor) -> dict[str, float]:
+        """One Adam step on eq. 7.1 for a batch of frames ``[B, H, W, 3]`` and their label maps ``[B, H, W]``."""
+        self.model.train()
+        loss, terms = self.model.loss(frames, self.model(frames, self.masks_for(labels)))
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.model.slot_parameters(), 1.0)
+        self.optimizer.step()
+        self.updates += 1
+        return {"loss": float(loss.detach()), **terms, "drop_probability": drop_probability(self.updates, self.total_updates)}
+
+
+def fit_autoencoder(autoencoder: FrameAutoencoder, frames: torch.Tensor, updates: int, batch_size: int = 32,
+                    lr: float = 1e-3, seed: int = 0) -> float:
+    """Train Enc/Dec on frames (uint8 ``[N, H, W, 3]``) by reconstruction, then freeze them; the last loss."""
+    generator = torch.Generator().manual_seed(seed)
+    optimizer = torch.optim.Adam(autoencoder.parameters(), lr=lr)
+    loss = torch.tensor(float("nan"))
+    for _ in range(updates):
+        images = frames_to_tensor(frames[torch.randint(len(frames), (batch_size,), generator=generator)])
+        loss = F.mse_loss(autoencoder(images), images)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    autoencoder.requires_grad_(False)
+    return float(loss.detach())

@@ -1,0 +1,121 @@
+"""Dyn-O's slot representation (eq. 7.1): the mask-drop schedule, the mask prior in slot attention,
+shapes, batching, what is trained and what is frozen, and seeded reproducibility."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from causal.slots import (
+    SlotAttention,
+    SlotConfig,
+    SlotModel,
+    SlotTrainer,
+    drop_probability,
+    fit_autoencoder,
+    token_masks,
+)
+from envs.chemical_pixels import ChemicalPixelsEnv
+
+torch.set_num_threads(1)
+SMALL = SlotConfig(num_slots=5, feature_dim=8, slot_dim=16, attention_dim=16, decoder_hidden=16, batch_size=4)
+
+
+def _frames(count: int = 8, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    env = ChemicalPixelsEnv(graph="chain", num_objects=4, frame_size=16)
+    env.reset(seed=seed)
+    frames, labels = env.render_states(env.sample_states(count))
+    return torch.from_numpy(frames), torch.from_numpy(labels.astype(np.int64))
+
+
+def test_drop_probability_follows_the_log_schedule() -> None:
+    assert drop_probability(0, 1000) == 0.0
+    assert drop_probability(1000, 1000) == pytest.approx(1.0)
+    assert drop_probability(99, 9999) == pytest.approx(math.log(100) / math.log(10000), rel=1e-12)
+    values = [drop_probability(u, 500) for u in range(501)]
+    assert all(b >= a for a, b in zip(values, values[1:]))
+
+
+def test_token_masks_cover_every_token_and_mark_each_segment() -> None:
+    labels = torch.zeros(1, 8, 8, dtype=torch.long)
+    labels[0, :4, :4] = 1
+    labels[0, 5, 6] = 2
+    allowed = token_masks(labels, num_slots=3, stride=4).view(1, 3, 2, 2)
+    assert allowed.any(dim=1).all()
+    assert allowed[0, 1].tolist() == [[True, False], [False, False]]
+    assert allowed[0, 2].tolist() == [[False, False], [False, True]]
+    assert allowed[0, 0].tolist() == [[False, True], [True, True]]
+    with pytest.raises(ValueError, match="slots"):
+        token_masks(labels, num_slots=2, stride=4)
+
+
+def test_slot_attention_respects_the_mask_prior_and_is_batched() -> None:
+    torch.manual_seed(0)
+    attention = SlotAttention(8, SMALL)
+    tokens = torch.randn(3, 10, 8)
+    allowed = torch.rand(3, SMALL.num_slots, 10) < 0.5
+    allowed[:, 0] |= ~allowed.any(dim=1)
+    slots, weights = attention(tokens, allowed)
+    assert slots.shape == (3, SMALL.num_slots, SMALL.slot_dim) and weights.shape == (3, SMALL.num_slots, 10)
+    assert float(weights.detach()[~allowed].abs().max()) < 1e-6
+    torch.testing.assert_close(weights.sum(dim=1), torch.ones(3, 10))
+    one, _ = attention(tokens[1:2], allowed[1:2])
+    torch.testing.assert_close(one[0], slots[1], rtol=1e-5, atol=1e-5)
+
+
+def test_model_shapes_alpha_masks_and_segmentation() -> None:
+    torch.manual_seed(0)
+    model = SlotModel(SMALL, frame_size=16)
+    frames, labels = _frames(4)
+    out = model(frames, token_masks(labels, SMALL.num_slots))
+    assert out.slots.shape == (4, 5, 16) and out.features.shape == (4, 16, 8)
+    assert out.features_hat.shape == out.features.shape and out.reconstruction.shape == (4, 3, 16, 16)
+    torch.testing.assert_close(out.alpha.sum(dim=1), torch.ones(4, 16))
+    segments = model.segment(frames)
+    assert segments.shape == (4, 16, 16) and int(segments.max()) < SMALL.num_slots
+
+
+def test_training_moves_the_slots_and_leaves_the_frozen_autoencoder() -> None:
+    torch.manual_seed(0)
+    model = SlotModel(SMALL, frame_size=16)
+    frames, labels = _frames(16)
+    fit_autoencoder(model.autoencoder, frames, updates=2, batch_size=4)
+    assert not any(p.requires_grad for p in model.autoencoder.parameters())
+    before_ae = [p.clone() for p in model.autoencoder.parameters()]
+    before_slots = [p.clone() for p in model.slot_parameters()]
+    losses = SlotTrainer(model, total_updates=3).update(frames[:4], labels[:4])
+    assert {"loss", "feature_mse", "image_mse"} <= set(losses) and np.isfinite(losses["loss"])
+    assert all(torch.equal(a, b) for a, b in zip(before_ae, model.autoencoder.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(before_slots, model.slot_parameters()))
+
+
+def test_mask_prior_modes() -> None:
+    _, labels = _frames(64)
+    allowed = token_masks(labels, SMALL.num_slots)
+    model = SlotModel(SMALL, frame_size=16)
+    annealed = SlotTrainer(model, total_updates=100)
+    assert torch.equal(annealed.masks_for(labels), allowed)
+    annealed.updates = 100
+    assert annealed.masks_for(labels).all()
+    annealed.updates = 10
+    dropped = annealed.masks_for(labels).flatten(1).all(dim=1).float().mean()
+    assert abs(float(dropped) - drop_probability(10, 100)) < 0.2
+    none = SlotTrainer(SlotModel(dataclasses.replace(SMALL, mask_prior="none"), 16), 100)
+    always = SlotTrainer(SlotModel(dataclasses.replace(SMALL, mask_prior="always"), 16), 100)
+    always.updates = 100
+    assert none.masks_for(labels) is None and torch.equal(always.masks_for(labels), allowed)
+    with pytest.raises(ValueError, match="mask_prior"):
+        SlotConfig(mask_prior="sometimes")
+
+
+def test_seeded_training_repeats() -> None:
+    frames, labels = _frames(8)
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(1)
+        trainer = SlotTrainer(SlotModel(SMALL, frame_size=16), total_updates=4, seed=1)
+        runs.append([trainer.update(frames[:4], labels[:4])["loss"] for _ in range(3)])
+    assert runs[0] == runs[1]
