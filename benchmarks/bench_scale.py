@@ -11,10 +11,13 @@ and writes a log-log plot; ``--profile`` prints where an update and a CMI evalua
 time at the largest size.
 
     python -m benchmarks.bench_scale [--sizes 5 10 20 40] [--graphs full random] [--budget 300]
-        [--out benchmark-results/scale] [--profile] [--eval 2000] [--heldout 20000]
+        [--out benchmark-results/scale] [--profile] [--eval 2000] [--heldout 20000] [--device cpu]
+    python -m benchmarks.bench_scale --rows ROWS.jsonl [...]   # the table and plot of rows measured earlier
 
 Timings are of this 2-core machine with one torch thread; the exponents, not the seconds, are the
-result to carry elsewhere.
+result to carry elsewhere. They are fitted to CPU seconds of the measuring process, which other
+processes on a shared machine disturb far less than the wall-clock seconds (printed beside them); the
+time to F1 is wall-clock against its budget.
 """
 from __future__ import annotations
 
@@ -38,7 +41,9 @@ from causal.graph_metrics import score_graph
 from envs.chemical import ChemicalEnv
 from envs.graphs import random_dag
 
-METRICS = ("update_s", "cmi_2k_s", "final_graph_s", "peak_rss_mb")
+METRICS = ("update_cpu_s", "cmi_2k_cpu_s", "final_graph_cpu_s", "peak_rss_mb")
+"""What the growth exponents are fitted to: CPU seconds of this process (``time.process_time``), which a
+shared, loaded machine disturbs far less than wall-clock seconds (also reported, as ``*_s``)."""
 TRANSITIONS, HELD_OUT, EVAL = 20_000, 20_000, 2_000
 
 
@@ -58,54 +63,64 @@ def collect(graph: str, objects: int, count: int, seed: int) -> tuple[tuple[torc
     return train.tensors(), held.tensors()
 
 
-def timed(fn, repeats: int) -> float:
-    started = time.perf_counter()
+def timed(fn, repeats: int, device: torch.device = torch.device("cpu")) -> tuple[float, float]:
+    """Wall-clock and CPU seconds (this process) per call of ``fn`` (a GPU's queue drained at both ends)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync()
+    started, cpu = time.perf_counter(), time.process_time()
     for _ in range(repeats):
         fn()
-    return (time.perf_counter() - started) / repeats
+    sync()
+    return (time.perf_counter() - started) / repeats, (time.process_time() - cpu) / repeats
 
 
 def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: int = HELD_OUT,
-             evaluation: int = EVAL) -> dict[str, Any]:
+             evaluation: int = EVAL, device: str = "cpu") -> dict[str, Any]:
     """Every figure of one (graph, size); run in its own process. ``evaluation`` transitions per CMI
-    evaluation (2,000 as the evaluator's), ``heldout`` for the final graph (20,000)."""
+    evaluation (2,000 as the evaluator's), ``heldout`` for the final graph (20,000); the model and the
+    data on ``device`` (on cuda the wall-clock seconds are the figures, and the GPU's peak memory too)."""
     torch.set_num_threads(1)
+    where = torch.device(device)
     env = make_env(graph, objects)
     layout = FactorLayout.from_spec(env.env_spec())
     train, held = collect(graph, objects, TRANSITIONS, seed)
-    held = tuple(x[:heldout] for x in held)
+    train, held = (tuple(x.to(where) for x in part) for part in (train, tuple(x[:heldout] for x in held)))
     trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
+    trainer.to(where)
     rng = np.random.default_rng(seed)
 
     def update() -> None:
-        index = torch.from_numpy(rng.integers(0, len(train[0]), 64))
+        index = torch.from_numpy(rng.integers(0, len(train[0]), 64)).to(where)
         trainer.update(*(x[index] for x in train))
 
-    timed(update, 3)  # warm-up
-    out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors,
+    timed(update, 3, where)  # warm-up
+    out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors, "device": device,
                            "parameters": sum(p.numel() for p in trainer.model.parameters()),
-                           "update_s": timed(update, 10), "cmi_samples": evaluation, "final_samples": len(held[0])}
+                           "cmi_samples": evaluation, "final_samples": len(held[0])}
     sample = tuple(x[:evaluation] for x in held)
-    out["cmi_2k_s"] = timed(lambda: trainer.model.cmi(*sample), 2)
-    out["final_graph_s"] = timed(lambda: trainer.model.cmi(*held), 1)
+    out["update_s"], out["update_cpu_s"] = timed(update, 10, where)
+    out["cmi_2k_s"], out["cmi_2k_cpu_s"] = timed(lambda: trainer.model.cmi(*sample), 2, where)
+    out["final_graph_s"], out["final_graph_cpu_s"] = timed(lambda: trainer.model.cmi(*held), 1, where)
     out.update(time_to_f1(trainer, update, sample, env.global_graph, budget))
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if where.type == "cuda":
+        out["peak_gpu_mb"] = torch.cuda.max_memory_allocated(where) / 2**20
     return out
 
 
 def time_to_f1(trainer: CDLTrainer, update, sample: tuple[torch.Tensor, ...], truth: np.ndarray,
                budget: float, target: float = 0.9, every: int = 200) -> dict[str, Any]:
     """Train until the CMI graph's best-threshold F1 reaches ``target`` or ``budget`` seconds pass."""
-    started, best = time.perf_counter(), 0.0
+    started, cpu, best = time.perf_counter(), time.process_time(), 0.0
     while time.perf_counter() - started < budget:
         for _ in range(every):
             update()
-        cmi = trainer.model.cmi(*sample).numpy()
+        cmi = trainer.model.cmi(*sample).cpu().numpy()
         best = score_graph(cmi, truth, trainer.cfg.cmi_threshold)["best_threshold_f1"]
         trainer.set_parents(cmi >= trainer.cfg.cmi_threshold)
         if best >= target:
-            return {"to_f1_0.9_s": time.perf_counter() - started, "updates_to_f1": trainer.updates,
-                    "best_f1_reached": best}
+            return {"to_f1_0.9_s": time.perf_counter() - started, "to_f1_0.9_cpu_s": time.process_time() - cpu,
+                    "updates_to_f1": trainer.updates, "best_f1_reached": best}
     return {"to_f1_0.9_s": None, "updates_to_f1": None, "best_f1_reached": best, "budget_s": budget}
 
 
@@ -127,11 +142,11 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for graph in dict.fromkeys(r["graph"] for r in rows):
         mine = [r for r in rows if r["graph"] == graph]
-        for key, style in (("update_s", "-o"), ("cmi_2k_s", "--s"), ("final_graph_s", ":^")):
+        for key, style in (("update_cpu_s", "-o"), ("cmi_2k_cpu_s", "--s"), ("final_graph_cpu_s", ":^")):
             ax.loglog([r["factors"] for r in mine], [r[key] for r in mine], style,
                       label=f"{graph}: {key} (slope {exponents(mine, key):.2f})")
     ax.set_xlabel("state factors d_S")
-    ax.set_ylabel("seconds")
+    ax.set_ylabel("CPU seconds (one thread)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -166,36 +181,64 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--eval", type=int, default=EVAL, help="transitions per CMI evaluation (the s/CMI column and "
                    "the F1 checks); fewer for a quick run on a loaded machine")
     p.add_argument("--heldout", type=int, default=HELD_OUT, help="held-out transitions of the final graph")
+    p.add_argument("--device", default="cpu", help="where the model and the data are (cpu, cuda)")
+    p.add_argument("--rows", type=Path, nargs="+", help="report rows measured earlier instead of measuring: "
+                   "scale.json files or the JSON lines the measuring prints (say, sizes run one at a time)")
     p.add_argument("--one", nargs=2, metavar=("GRAPH", "OBJECTS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.one:
         print(json.dumps(one_size(args.one[0], int(args.one[1]), args.budget, heldout=args.heldout,
-                                  evaluation=args.eval)))
+                                  evaluation=args.eval, device=args.device)))
         return
     args.out.mkdir(parents=True, exist_ok=True)
+    rows = load_rows(args.rows) if args.rows else measure(args)
+    report(rows, args.out)
+    if args.profile:
+        profile(args.graphs[0], max(args.sizes))
+
+
+def measure(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """One fresh process per (graph, size), each printing its row."""
     rows = []
     for graph in args.graphs:
         for n in args.sizes:
             result = subprocess.run([sys.executable, "-m", "benchmarks.bench_scale", "--one", graph, str(n),
                                      "--budget", str(args.budget), "--eval", str(args.eval), "--heldout",
-                                     str(args.heldout)], capture_output=True, text=True, check=True)
+                                     str(args.heldout), "--device", args.device],
+                                    capture_output=True, text=True, check=True)
             rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
             print(json.dumps(rows[-1]), flush=True)
-    (args.out / "scale.json").write_text(json.dumps(rows, indent=1))
-    print(f"\n| graph | objects | d_S | parameters | s/update | s/CMI ({args.eval:,}) | s final graph ({args.heldout:,}) | peak RSS MB | "
-          "s to best F1 0.9 | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
+    return rows
+
+
+def load_rows(paths: list[Path]) -> list[dict[str, Any]]:
+    """Rows from scale.json files (a list) or files of JSON lines, in the order given."""
+    rows: list[dict[str, Any]] = []
+    for path in paths:
+        text = path.read_text().strip()
+        rows += json.loads(text) if text.startswith("[") else [json.loads(line) for line in text.splitlines()
+                                                               if line.startswith("{")]
+    return rows
+
+
+def report(rows: list[dict[str, Any]], out: Path) -> None:
+    """The table, the growth exponents and the plot; rows into ``out/scale.json``."""
+    (out / "scale.json").write_text(json.dumps(rows, indent=1))
+    print("\nCPU seconds of the process (wall-clock in brackets); the time to F1 is wall-clock, with its budget\n"
+          "\n| graph | objects | d_S | parameters | s/update | s/CMI (n) | s final graph (n) "
+          "| peak RSS MB | s to best F1 0.9 (updates) | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        reach = f"{r['to_f1_0.9_s']:.0f}" if r["to_f1_0.9_s"] else f"> {r['budget_s']:.0f}"
-        print(f"| {r['graph']} | {r['objects']} | {r['factors']} | {r['parameters']:,} | {r['update_s']:.3f} | "
-              f"{r['cmi_2k_s']:.2f} | {r['final_graph_s']:.1f} | {r['peak_rss_mb']:.0f} | {reach} | "
-              f"{r['best_f1_reached']:.3f} |")
-    for graph in args.graphs:
+        reach = (f"{r['to_f1_0.9_s']:.0f} ({r['updates_to_f1']:,})" if r["to_f1_0.9_s"]
+                 else f"> {r['budget_s']:.0f} (not reached)" if r.get("budget_s") else "not run (budget 0)")
+        print(f"| {r['graph']} | {r['objects']} | {r['factors']} | {r['parameters']:,} | "
+              f"{r['update_cpu_s']:.3f} ({r['update_s']:.3f}) | {r['cmi_2k_cpu_s']:.2f} ({r['cmi_2k_s']:.2f}; "
+              f"{r['cmi_samples']:,}) | {r['final_graph_cpu_s']:.1f} ({r['final_graph_s']:.1f}; {r['final_samples']:,}) | "
+              f"{r['peak_rss_mb']:.0f} | {reach} | {r['best_f1_reached']:.3f} |")
+    for graph in dict.fromkeys(r["graph"] for r in rows):
         mine = [r for r in rows if r["graph"] == graph]
         print(f"{graph}: growth exponents in d_S: " + ", ".join(f"{k} {exponents(mine, k):.2f}" for k in METRICS))
-    plot(rows, args.out / "scale.png")
-    print(f"wrote {args.out / 'scale.json'} and {args.out / 'scale.png'}")
-    if args.profile:
-        profile(args.graphs[0], max(args.sizes))
+    plot(rows, out / "scale.png")
+    print(f"wrote {out / 'scale.json'} and {out / 'scale.png'}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,29 @@
+"""bench_scale's bookkeeping: growth exponents and rows reported from earlier runs."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks.bench_scale import exponents, load_rows, one_size
+
+
+def test_exponent_is_the_log_log_slope() -> None:
+    rows = [{"factors": d, "update_cpu_s": 0.5 * d ** 2.0} for d in (15, 30, 60)]
+    assert exponents(rows, "update_cpu_s") == pytest.approx(2.0)
+    assert exponents(rows[:1], "update_cpu_s") is None
+
+
+def test_rows_load_from_json_lists_and_json_lines(tmp_path) -> None:
+    (tmp_path / "a.json").write_text(json.dumps([{"objects": 5}, {"objects": 10}]))
+    (tmp_path / "b.jsonl").write_text('log line\n{"objects": 20}\n')
+    assert [r["objects"] for r in load_rows([tmp_path / "a.json", tmp_path / "b.jsonl"])] == [5, 10, 20]
+
+
+def test_one_size_reports_every_figure_without_a_budget(monkeypatch) -> None:
+    import benchmarks.bench_scale as bench
+
+    monkeypatch.setattr(bench, "TRANSITIONS", 300)
+    row = one_size("full", 2, budget=0.0, heldout=100, evaluation=50)
+    assert (row["factors"], row["cmi_samples"], row["final_samples"], row["device"]) == (6, 50, 100, "cpu")
+    assert row["update_cpu_s"] > 0 and row["cmi_2k_cpu_s"] > 0 and row["to_f1_0.9_s"] is None
