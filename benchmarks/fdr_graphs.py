@@ -11,7 +11,7 @@ needs the truth). Also how the recall of the weak true edges (model CMI < 0.02) 
 held-out data the tests see.
 
     python -m benchmarks.fdr_graphs [--graphs collider chain full envs/dags/random10.json random:10:20:1
-        random:10:25:2] [--seeds 0 1 2] [--updates 4000] [--fdr 0.05] [--min-cmi 0.0005]
+        random:10:25:2] [--seeds 0 1 2] [--updates 4000] [--fdr 0.05] [--min-cmi 0.005]
         [--out benchmark-results/fdr]
 """
 from __future__ import annotations
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--updates", type=int, default=4000)
     p.add_argument("--fdr", type=float, default=0.05)
-    p.add_argument("--min-cmi", type=float, default=5e-4)
+    p.add_argument("--min-cmi", type=float, default=5e-3)
     p.add_argument("--out", type=Path, default=Path("benchmark-results/fdr"))
     args = p.parse_args(argv)
     torch.set_num_threads(1)

@@ -18,7 +18,7 @@ class GraphEvaluatorConfig(ServiceConfig):
                                   "error, at false-discovery rate fdr, Benjamini-Hochberg; needs a method whose "
                                   "graph has standard errors)", choices=EDGE_RULES)
     fdr: float = doc(0.05, "false-discovery rate of the fdr edge rule")
-    min_cmi: float = doc(5e-4, "smallest CMI (nats) the fdr rule counts as an effect: a learned model's CMI of a "
+    min_cmi: float = doc(5e-3, "smallest CMI (nats) the fdr rule counts as an effect: a learned model's CMI of a "
                                "non-edge is biased slightly above 0 (docs/deviations.md)")
 
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "

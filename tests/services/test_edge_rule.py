@@ -83,7 +83,7 @@ def test_fdr_rule_tests_each_entry_and_scores_the_tested_graph() -> None:
 
 
 def test_summary_carries_standard_errors_undecided_entries_and_the_rule() -> None:
-    core = GraphEvaluatorCore(GraphEvaluatorConfig(edge_rule="fdr"), toy_spec())
+    core = GraphEvaluatorCore(GraphEvaluatorConfig(edge_rule="fdr", min_cmi=5e-4), toy_spec())
     _, stderr = hand_made(core)
     fields = graph_fields(core.report(num_heldout=100))
     assert fields["edge_rule"] == "fdr" and fields["fdr"] == 0.05 and fields["min_cmi"] == 5e-4
