@@ -154,21 +154,22 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def profile(graph: str, objects: int) -> None:
-    """Where one update and one CMI evaluation spend their time (torch's operator profile)."""
+def profile(graph: str, objects: int, evaluation: int = EVAL) -> None:
+    """Where one update and one CMI evaluation of ``evaluation`` transitions spend their time (torch's
+    operator profile)."""
     torch.set_num_threads(1)
     env = make_env(graph, objects)
     trainer = CDLTrainer(FactorLayout.from_spec(env.env_spec()), CDLConfig())
-    data = tuple(x[:2_000] for x in collect(graph, objects, 2_000, 0)[0])
+    data = tuple(x[:evaluation] for x in collect(graph, objects, evaluation, 0)[0])
     batch = tuple(x[:64] for x in data)
     trainer.update(*batch)
     from torch.profiler import ProfilerActivity, profile as torch_profile
 
-    for name, fn in (("update", lambda: trainer.update(*batch)), ("cmi 2k", lambda: trainer.model.cmi(*data))):
+    for name, fn in (("update", lambda: trainer.update(*batch)), (f"cmi of {len(data[0]):,}", lambda: trainer.model.cmi(*data))):
         with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
             fn()
         print(f"\n== {name}, {graph} {objects} objects ==")
-        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=8))
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=10))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -194,7 +195,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = load_rows(args.rows) if args.rows else measure(args)
     report(rows, args.out)
     if args.profile:
-        profile(args.graphs[0], max(args.sizes))
+        profile(args.graphs[0], max(args.sizes), args.eval)
 
 
 def measure(args: argparse.Namespace) -> list[dict[str, Any]]:
