@@ -26,41 +26,57 @@ import time
 
 import zenoh
 
+from services.bus.credentials import Credentials, RouterAuth
+
 LOOPBACK_ROUTER = "tcp/127.0.0.1:7447"
 """The embedded default: the local supervisor's router."""
 
 
-def router_config(listen: str = LOOPBACK_ROUTER) -> zenoh.Config:
-    """A router listening on ``listen`` only, multicast scouting off, gossip scouting on."""
+def router_config(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None) -> zenoh.Config:
+    """A router listening on ``listen`` only, multicast scouting off, gossip scouting on.
+
+    With ``auth``: only users of its dictionary are admitted (a client without credentials, or with a
+    wrong password, fails to open its session) and each may do only what its role allows
+    (:mod:`services.bus.roles`); whatever a role does not allow is dropped by the router."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     config.insert_json5("listen/endpoints", json.dumps([listen]))
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("scouting/delay", "0")
+    if auth is not None:
+        config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(auth.users_file)))
+        config.insert_json5("access_control", json.dumps(auth.access_control))
     return config
 
 
-def start_router(listen: str = LOOPBACK_ROUTER) -> zenoh.Session:
+def start_router(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None) -> zenoh.Session:
     """Open a Python session in router mode on ``listen``; close the session to stop the router."""
-    return zenoh.open(router_config(listen))
+    return zenoh.open(router_config(listen, auth))
 
 
-def client_config(connect: str) -> zenoh.Config:
-    """A client of the router at ``connect``: no listening, no multicast scouting."""
+def client_config(connect: str, credentials: Credentials | None = None) -> zenoh.Config:
+    """A client of the router at ``connect``: no listening, no multicast scouting; with
+    ``credentials``, it authenticates as that user."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("client"))
     config.insert_json5("connect/endpoints", json.dumps([connect]))
     config.insert_json5("listen/endpoints", "[]")
     config.insert_json5("scouting/multicast/enabled", "false")
+    if credentials is not None:
+        config.insert_json5("transport/auth/usrpwd/user", json.dumps(credentials.user))
+        config.insert_json5("transport/auth/usrpwd/password", json.dumps(credentials.password))
     return config
 
 
-def wait_for_router(connect: str, timeout: float = 10.0, interval: float = 0.05) -> None:
-    """Return once a client session to ``connect`` opens; raise ``TimeoutError`` after ``timeout`` s."""
+def wait_for_router(connect: str, timeout: float = 10.0, interval: float = 0.05,
+                    credentials: Credentials | None = None) -> None:
+    """Return once a client session to ``connect`` opens; raise ``TimeoutError`` after ``timeout`` s.
+
+    A router that requires credentials refuses a session without them: pass ``credentials`` there."""
     deadline = time.monotonic() + timeout
     while True:
         try:
-            zenoh.open(_one_attempt_config(connect, deadline)).close()
+            zenoh.open(_one_attempt_config(connect, deadline, credentials)).close()
             return
         except zenoh.ZError as error:
             if time.monotonic() + interval > deadline:
@@ -75,9 +91,9 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
         return int(probe.getsockname()[1])
 
 
-def _one_attempt_config(connect: str, deadline: float) -> zenoh.Config:
+def _one_attempt_config(connect: str, deadline: float, credentials: Credentials | None = None) -> zenoh.Config:
     """``client_config`` whose connection attempt gives up by ``deadline`` (unreachable hosts hang)."""
-    config = client_config(connect)
+    config = client_config(connect, credentials)
     remaining_ms = max(1, int((deadline - time.monotonic()) * 1000))
     config.insert_json5("connect/timeout_ms", str(min(remaining_ms, 1000)))
     return config

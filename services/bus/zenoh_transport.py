@@ -43,6 +43,7 @@ import zenoh
 
 from services.bus.handles import HandleRegistry, OnceHandle
 from services.bus.base import Callback, Handle, LatestValue, LivelinessCallback
+from services.bus.credentials import Credentials
 from services.bus.router import client_config
 
 logger = logging.getLogger(__name__)
@@ -128,12 +129,14 @@ class ZenohTransport(HandleRegistry):
 
     Opening fails with ``zenoh.ZError`` when no router answers; call ``wait_for_router`` first
     where the router may still be starting. Use it as a context manager, or ``close`` it; an
-    interpreter exit closes whatever is still open.
+    interpreter exit closes whatever is still open. ``credentials``: the user this client
+    authenticates as, where the router requires one (:mod:`services.bus.roles`); a router that
+    denies one of its puts or declarations drops it silently.
     """
 
-    def __init__(self, connect: str) -> None:
+    def __init__(self, connect: str, credentials: Credentials | None = None) -> None:
         self.connect = connect
-        self._session = zenoh.open(client_config(connect))
+        self._session = zenoh.open(client_config(connect, credentials))
         self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
         super().__init__()
         with _open_lock:

@@ -5,6 +5,11 @@ A run is named by its router endpoint and run id: ``--connect tcp/127.0.0.1:7447
 ``config.json`` holds the run id (and the router port, used while ``processes.json`` is not there
 yet). Explicit flags win over the run directory, which wins over ``CAUSEWAY_ZENOH_CONNECT`` /
 ``CAUSEWAY_RUN_ID``; the endpoint falls back to the local default router.
+
+Credentials (a router with roles, :mod:`services.bus.roles`): ``--bus-credentials FILE``, else the run
+directory's ``secrets/operator.credentials`` where its ``config.json`` says ``bus_auth``, else
+``$CAUSEWAY_BUS_CREDENTIALS``; none of them: the command connects without credentials (a router
+without authentication refuses a client that brings some, and one with it a client that brings none).
 """
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ from pathlib import Path
 from typing import Mapping
 
 from proto import topics
+from services.bus.credentials import Credentials, read_credentials, role_file
 from services.bus.router import LOOPBACK_ROUTER
 from services.bus.zenoh_transport import ZenohTransport
 
@@ -45,6 +51,8 @@ class Target:
     """Zenoh endpoint of the run's router, e.g. ``tcp/127.0.0.1:7447``."""
     run_id: str
     """The ``<run>`` segment of every topic of the run."""
+    credentials: Credentials | None = None
+    """The operator's bus credentials, where the router requires them."""
 
 
 def add_target_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,7 +63,11 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", dest="run_id", default=None,
                         help="run id (default: the run dir's, else $CAUSEWAY_RUN_ID)")
     parser.add_argument("--run-dir", default=None,
-                        help="a local run directory: router endpoint from processes.json, run id from config.json")
+                        help="a local run directory: router endpoint from processes.json, run id from config.json, "
+                             "operator credentials from secrets/operator.credentials (a run with --bus-auth)")
+    parser.add_argument("--bus-credentials", default=None,
+                        help="file with the operator's bus credentials, one line user:password (default: the run "
+                             "dir's, else $CAUSEWAY_BUS_CREDENTIALS, else none)")
 
 
 def resolve_target(args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> Target:
@@ -70,7 +82,27 @@ def resolve_target(args: argparse.Namespace, environ: Mapping[str, str] | None =
         topics.alive(run_id)
     except ValueError as exc:
         raise OpsError(f"bad run id: {exc}") from None
-    return Target(connect, run_id)
+    return Target(connect, run_id, _credentials(args, environ))
+
+
+def _credentials(args: argparse.Namespace, environ: Mapping[str, str]) -> Credentials | None:
+    """The operator's credentials from the first of: --bus-credentials, the run dir, the environment."""
+    path = getattr(args, "bus_credentials", None)
+    if not path and args.run_dir and _run_uses_auth(Path(args.run_dir)):
+        path = str(role_file(args.run_dir, "operator"))
+    path = path or environ.get("CAUSEWAY_BUS_CREDENTIALS", "")
+    if not path:
+        return None
+    try:
+        return read_credentials(path)
+    except ValueError as exc:
+        raise OpsError(str(exc)) from None
+
+
+def _run_uses_auth(run_dir: Path) -> bool:
+    """Whether the run was started with ``--bus-auth`` (a router without it refuses any credentials,
+    so a run dir resumed without it must not lend its old ones)."""
+    return bool((_read_json(run_dir / "config.json") or {}).get("bus_auth"))
 
 
 def read_run_dir(run_dir: Path) -> Target:
@@ -99,10 +131,11 @@ def open_bus(target: Target) -> ZenohTransport:
     import zenoh
 
     try:
-        return ZenohTransport(target.connect)
+        return ZenohTransport(target.connect, target.credentials)
     except zenoh.ZError as exc:
         reason = str(exc).split("  at ")[0].strip()  # zenoh appends the Rust source location
-        raise OpsError(f"could not reach the Zenoh router at {target.connect} (is the stack running?): {reason}") from None
+        hint = "is the stack running?" + ("" if target.credentials else " does it need --bus-credentials?")
+        raise OpsError(f"could not reach the Zenoh router at {target.connect} ({hint}): {reason}") from None
 
 
 def check_scalable(service: str, count: int) -> None:

@@ -72,6 +72,9 @@ class ServiceConfig(RunSettings):
     run_dir: str = doc("runs/default", "run directory: checkpoints, logs, summaries")
     instance: str = doc("0", "instance id of this process within its service")
     stats_interval_s: float = doc(1.0, "seconds between progress beats on the stats topic")
+    bus_credentials: str = doc("", "file holding this process's Zenoh user and password (one line user:password; "
+                                   "a compose or Kubernetes secret, or <run_dir>/secrets/<role>.credentials of a "
+                                   "local run with --bus-auth); empty: connect without credentials")
 
 
 SERVICE_FIELDS = tuple(f.name for f in dataclasses.fields(ServiceConfig))

@@ -86,8 +86,7 @@ class ServiceShell:
     def __init__(self, service: str, cfg: ServiceConfig, transport: Transport | None = None) -> None:
         self.service, self.cfg = service, cfg
         if transport is None:
-            from services.bus.zenoh_transport import ZenohTransport
-            transport = ZenohTransport(cfg.zenoh_connect)
+            transport = open_zenoh(cfg)
         self.transport = transport
         self.metrics = ServiceMetrics(service, cfg.instance)
         self.metrics.serve(cfg.metrics_port, cfg.metrics_host)
@@ -203,6 +202,22 @@ class ServiceShell:
             except Exception:  # closing must go on for the rest
                 log.exception("closing a bus handle failed")
         self.transport.close()
+
+
+def open_zenoh(cfg: ServiceConfig) -> Transport:
+    """A Zenoh client of ``cfg.zenoh_connect``, as the user of ``cfg.bus_credentials`` when set; an
+    unreadable credentials file is a configuration error (``CONFIG_ERROR_EXIT``: not restarted)."""
+    from services.bus.credentials import read_credentials
+    from services.bus.zenoh_transport import ZenohTransport
+
+    credentials = None
+    if cfg.bus_credentials:
+        try:
+            credentials = read_credentials(cfg.bus_credentials)
+        except ValueError as exc:
+            log.error("%s", exc)
+            sys.exit(CONFIG_ERROR_EXIT)
+    return ZenohTransport(cfg.zenoh_connect, credentials)
 
 
 def setup_logging(service: str) -> None:

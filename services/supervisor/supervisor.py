@@ -26,6 +26,7 @@ from envs.registry import env_entry
 from proto import topics
 from proto.codec import ProtocolError, decode, encode
 from proto.messages import Control, GraphReport, LocalGraphReport, ServiceStats
+from services.bus.credentials import read_credentials
 from services.bus.router import start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from services.runtime.config import to_environ, write_config
@@ -35,8 +36,8 @@ from services.supervisor.config import RunConfig
 from services.supervisor.processes import FatalServiceError, ManagedProcess, leftovers, stop_all
 from services.supervisor.progress import Progress
 from services.supervisor.stop_rules import StopRules
-from services.supervisor.wiring import (MODULES, check_ports_free, learning_services, resolve, service_configs,
-                                       worker_config)
+from services.supervisor.wiring import (MODULES, check_ports_free, credentials_path, learning_services,
+                                       prepare_bus_auth, resolve, service_configs, worker_config)
 
 log = logging.getLogger("supervisor")
 
@@ -91,9 +92,11 @@ class Supervisor:
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._write_run_config()
-        self.router = start_router(f"tcp/127.0.0.1:{self.cfg.router_port}")
-        wait_for_router(self.connect)
-        self.bus = ZenohTransport(self.connect)
+        auth = prepare_bus_auth(self.cfg)
+        self.router = start_router(f"tcp/127.0.0.1:{self.cfg.router_port}", auth)
+        own = read_credentials(credentials_path(self.cfg, "supervisor")) if auth else None
+        wait_for_router(self.connect, credentials=own)
+        self.bus = ZenohTransport(self.connect, own)
         self.bus.subscribe(topics.stats(self.cfg.run_id), self._on_stats)
         self.bus.subscribe(topics.graph(self.cfg.run_id), self._on_graph)
         self.bus.subscribe(topics.local(self.cfg.run_id), self._on_local)

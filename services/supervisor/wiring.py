@@ -19,6 +19,8 @@ from causal.method import Method, has_standard_errors
 from causal.methods import get_method
 from envs.registry import EnvEntry, check_options, env_entry, make_env
 from proto.messages import EnvSpec
+from services.bus.credentials import RouterAuth, role_file, write_run_secrets
+from services.bus.roles import access_control, new_passwords, run_roles
 from services.bus.router import free_tcp_port
 from services.dashboard.config import DashboardConfig
 from services.env_worker.config import EnvWorkerConfig
@@ -106,7 +108,7 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
         return cfg.metrics_base_port + offset if cfg.metrics_base_port else 0
 
     entry = env_entry(cfg.env)
-    return {
+    configs = {
         "dynamics-learner": dataclasses.replace(cfg.learner, **common, metrics_port=port(1), models=cfg.models),
         "graph-evaluator": dataclasses.replace(cfg.evaluator, **common, metrics_port=port(2)),
         "dashboard": DashboardConfig(**common, metrics_port=port(3), http_host=LOOPBACK,
@@ -118,6 +120,22 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
                                                 reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff"),
         "env-worker": worker_config(cfg, connect, worker_index),
     }
+    return {name: dataclasses.replace(c, bus_credentials=credentials_path(cfg, name)) for name, c in configs.items()}
+
+
+def credentials_path(cfg: RunConfig, role: str) -> str:
+    """The file ``role``'s processes read their bus credentials from ('' without ``--bus-auth``): a path
+    in their environment, never the password (:mod:`services.bus.credentials`)."""
+    return str(role_file(Path(cfg.run_dir).resolve(), role)) if cfg.bus_auth else ""
+
+
+def prepare_bus_auth(cfg: RunConfig) -> RouterAuth | None:
+    """With ``--bus-auth``: fresh credentials for every role of the run under ``<run_dir>/secrets`` and
+    the router's access control (:mod:`services.bus.roles`); None without."""
+    if not cfg.bus_auth:
+        return None
+    roles = run_roles(cfg.run_id, cfg.method)
+    return write_run_secrets(cfg.run_dir, new_passwords(tuple(roles)), access_control(roles))
 
 
 def learning_services(cfg: RunConfig) -> tuple[str, ...]:
@@ -135,7 +153,8 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
     return dataclasses.replace(cfg.worker, **shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect,
                                run_dir=cfg.run_dir, metrics_port=port, metrics_host=LOOPBACK, instance=str(index), env=cfg.env,
                                env_options=cfg.env_options, worker_index=index,
-                               follow_policy=cfg.collector != "random", local_graphs=scores_local_graphs(cfg))
+                               follow_policy=cfg.collector != "random", local_graphs=scores_local_graphs(cfg),
+                               bus_credentials=credentials_path(cfg, "env-worker"))
 
 
 def scores_local_graphs(cfg: RunConfig) -> bool:

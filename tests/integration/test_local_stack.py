@@ -21,6 +21,7 @@ import pytest
 from proto import topics
 from proto.codec import decode
 from proto.messages import GraphReport, ServiceStats
+from services.bus.credentials import Credentials, read_credentials, role_file
 from services.bus.router import free_tcp_port
 from services.bus.zenoh_transport import ZenohTransport
 
@@ -41,12 +42,18 @@ def wait_for(predicate, timeout: float, what: str, interval: float = 0.2):
 class Watcher:
     """Subscribes to a run's graph reports and learner stats over the real router."""
 
-    def __init__(self, connect: str, run_id: str) -> None:
-        self.bus = ZenohTransport(connect)
+    def __init__(self, connect: str, run_id: str, credentials: Credentials | None = None) -> None:
+        self.bus = ZenohTransport(connect, credentials)
         self.reports: list[GraphReport] = []
         self.learner: list[ServiceStats] = []
         self.bus.subscribe(topics.graph(run_id), lambda k, p: self.reports.append(decode(p, GraphReport)))
         self.bus.subscribe(topics.stats(run_id, "dynamics-learner"), lambda k, p: self.learner.append(decode(p, ServiceStats)))
+
+
+def watcher_credentials(run_dir: Path) -> Credentials | None:
+    """The supervisor's credentials where the run has roles on the bus (its role reads graphs and stats)."""
+    uses_auth = json.loads((run_dir / "config.json").read_text()).get("bus_auth")
+    return read_credentials(role_file(run_dir, "supervisor")) if uses_auth else None
 
 
 def start_stack(tmp_path: Path, port: int, metrics: int) -> subprocess.Popen:
@@ -65,7 +72,7 @@ def test_local_stack_learns_survives_sigkill_and_reports(tmp_path: Path) -> None
     try:
         table = wait_for(lambda: (run_dir / "processes.json").exists() and json.loads((run_dir / "processes.json").read_text()),
                          60, "the process table")
-        watcher = Watcher(f"tcp/127.0.0.1:{port}", "run")
+        watcher = Watcher(f"tcp/127.0.0.1:{port}", "run", watcher_credentials(run_dir))
         report = wait_for(lambda: watcher.reports and watcher.reports[-1], 120, "a graph report")
         n = len(report.factor_names)
         assert n == 9 and report.cmi.shape == (9, 10) and np.isfinite(report.cmi).all()
@@ -93,7 +100,7 @@ def test_local_stack_learns_survives_sigkill_and_reports(tmp_path: Path) -> None
         watcher.bus.close()
     finally:
         stack.send_signal(signal.SIGINT)
-        out, _ = stack.communicate(timeout=90)
+        out, _ = stack.communicate(timeout=300)  # the post-run evaluation: minutes on a loaded machine
     assert stack.returncode == 0, out
     summary = json.loads((run_dir / "summary.json").read_text())
     for key in ("env", "env_options", "graph", "seed", "env_steps", "updates", "wall_seconds", "accuracy", "precision", "recall",

@@ -1,0 +1,150 @@
+"""Roles on the bus: what each kind of process may do on the router, and the router's access control.
+
+One run, one set of roles. Each role is a Zenoh user (``transport/auth/usrpwd``) whose rules allow
+exactly the key expressions its processes use, read from their ``service.py``, from
+``services.runtime.shell`` (every service: its control topics, its liveliness token, its stats beats,
+the EnvSpec query) and from ``services.ops`` (operators). Everything else is denied
+(``default_permission: deny``), so an env-worker's credentials cannot publish weights or control, and
+a client without credentials is refused when it opens its session.
+
+Who publishes and who subscribes, per role (``<run>`` elided; ``<m>`` is the run's method):
+
+| role | publishes | subscribes | serves (queryable) | queries | liveliness |
+|---|---|---|---|---|---|
+| env-worker | transitions/*, env/spec | weights/policy | env/spec | weights/policy | token |
+| dynamics-learner | weights/<m> | transitions/*, graph/<m> | weights/<m> | env/spec | token |
+| graph-evaluator | graph/<m>, local/<m> | transitions/*, weights/<m> | graph/<m>, local/<m> | weights/<m>, env/spec | token |
+| intrinsic-reward | scored/* | transitions/*, weights/<m>, graph/<m> | | weights/<m>, graph/<m>, env/spec | token |
+| policy-learner | weights/policy | transitions/* or scored/*, graph/<m> | weights/policy | env/spec | token |
+| dashboard | | graph/*, local/*, stats/** of the watched runs | | graph/*, local/* | token |
+| supervisor | control/all, control/env-worker | stats/**, graph/*, local/* | | | token |
+| operator | control/* | stats/** | | | watches and queries alive/** |
+
+Every service also publishes ``stats/<service>/*`` and subscribes to ``control/<service>`` and
+``control/all``. How a capability becomes Zenoh ACL messages and flows (ingress: from the client to
+the router; egress: from the router to the client), measured with eclipse-zenoh 1.10.2: a publisher
+needs ingress ``put`` and egress ``declare_subscriber``; a subscriber ingress ``declare_subscriber``
+and egress ``put``; a queryable ingress ``declare_queryable`` and ``reply`` and egress ``query``; a
+querier ingress ``query`` and egress ``reply`` and ``declare_queryable``; a token holder ingress
+``liveliness_token``; a liveliness watcher ingress ``declare_liveliness_subscriber`` and
+``liveliness_query`` and egress ``liveliness_token``.
+
+The publisher's egress ``declare_subscriber`` is not optional: a declared publisher filters on the
+writer side, sending only while it knows of a matching subscriber, and learns of them from the
+router's subscriber declarations. Without it, a client that declared a publisher on a key it may not
+use stopped delivering on its *allowed* publishers too (every put after that declaration dropped),
+and whether a first put got through depended on timing. The querier's egress ``declare_queryable``
+is there for the same reason (queries are routed by what the router declares to the client).
+
+This module is pure: :func:`run_roles` declares, :func:`access_control` renders the router's JSON,
+:func:`new_passwords` draws passwords; files are written by :mod:`services.bus.credentials`.
+"""
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass, fields
+from typing import Any
+
+from proto import topics
+
+SERVICES = ("env-worker", "dynamics-learner", "graph-evaluator", "intrinsic-reward", "policy-learner",
+            "dashboard")
+"""Roles of the service processes; each service's processes share its role."""
+ROLES = SERVICES + ("supervisor", "operator")
+POLICY_MODEL = "policy"
+"""The policy-learner's weights topic segment (``causal.rl.policy_weights.MODEL``)."""
+
+
+@dataclass(frozen=True)
+class Role:
+    """The key expressions one role may use, by capability."""
+
+    name: str
+    publish: tuple[str, ...] = ()
+    subscribe: tuple[str, ...] = ()
+    serve: tuple[str, ...] = ()
+    """Queryables (``serve_latest``); a served value is also published, so these are in ``publish`` too."""
+    query: tuple[str, ...] = ()
+    tokens: tuple[str, ...] = ()
+    """Liveliness tokens it declares."""
+    watch: tuple[str, ...] = ()
+    """Liveliness tokens it watches or queries."""
+
+
+CAPABILITIES: dict[str, tuple[tuple[str, str], ...]] = {
+    "publish": (("ingress", "put"), ("egress", "declare_subscriber")),
+    "subscribe": (("ingress", "declare_subscriber"), ("egress", "put")),
+    "serve": (("ingress", "declare_queryable"), ("egress", "query"), ("ingress", "reply")),
+    "query": (("ingress", "query"), ("egress", "reply"), ("egress", "declare_queryable")),
+    "tokens": (("ingress", "liveliness_token"),),
+    "watch": (("ingress", "declare_liveliness_subscriber"), ("ingress", "liveliness_query"),
+              ("egress", "liveliness_token")),
+}
+"""Capability -> the (flow, ACL message) pairs it needs on its keys (see the module notes)."""
+
+
+def _service(run: str, name: str, *, publish: tuple[str, ...] = (), subscribe: tuple[str, ...] = (),
+             serve: tuple[str, ...] = (), query: tuple[str, ...] = (), spec: bool = True) -> Role:
+    """A service's role: what ``ServiceShell`` does for every service, plus its own keys."""
+    return Role(name, publish=publish + serve + (topics.stats(run, name),),
+                subscribe=subscribe + (topics.control(run, name), topics.control(run, "all")),
+                serve=serve, query=query + ((topics.env_spec(run),) if spec else ()),
+                tokens=(topics.alive(run, name),))
+
+
+def run_roles(run: str, method: str, dashboard_run: str | None = None) -> dict[str, Role]:
+    """Every role of run ``run`` whose learner, evaluator and reward use ``method``.
+
+    ``dashboard_run`` is the run the dashboard shows (``*``: every run on the router; default ``run``).
+    """
+    shown = run if dashboard_run is None else dashboard_run
+    weights, policy = topics.weights(run, method), topics.weights(run, POLICY_MODEL)
+    graph, local = topics.graph(run, method), topics.local(run, method)
+    transitions, scored = topics.transitions(run), topics.scored(run)
+    roles = (
+        _service(run, "env-worker", publish=(transitions,), subscribe=(policy,), serve=(topics.env_spec(run),),
+                 query=(policy,), spec=False),
+        _service(run, "dynamics-learner", subscribe=(transitions, graph), serve=(weights,)),
+        _service(run, "graph-evaluator", subscribe=(transitions, weights), serve=(graph, local), query=(weights,)),
+        _service(run, "intrinsic-reward", publish=(scored,), subscribe=(transitions, weights, graph),
+                 query=(weights, graph)),
+        _service(run, "policy-learner", subscribe=(transitions, scored, graph), serve=(policy,)),
+        _service(run, "dashboard", spec=False,
+                 subscribe=(topics.graph(shown), topics.local(shown), topics.stats(shown)),
+                 query=(topics.graph(shown), topics.local(shown))),
+        Role("supervisor", publish=(topics.control(run, "all"), topics.control(run, "env-worker")),
+             subscribe=(topics.stats(run), topics.graph(run), topics.local(run),
+                        topics.control(run, "supervisor"), topics.control(run, "all")),
+             tokens=(topics.alive(run, "supervisor", "0"),)),
+        Role("operator", publish=(topics.control(run),), subscribe=(topics.stats(run),), watch=(topics.alive(run),)),
+    )
+    return {role.name: role for role in roles}
+
+
+def _rule_id(role: str, capability: str) -> str:
+    return f"{role}-{capability}"
+
+
+def access_control(roles: dict[str, Role]) -> dict[str, Any]:
+    """The router's ``access_control`` configuration: deny by default, each role's capabilities allowed
+    for the user of the same name."""
+    rules, policies = [], []
+    for role in roles.values():
+        ids = []
+        for capability in (f.name for f in fields(Role) if f.name != "name"):
+            keys = getattr(role, capability)
+            for flow in ("ingress", "egress"):
+                messages = [m for f, m in CAPABILITIES[capability] if f == flow]
+                if keys and messages:
+                    ids.append(f"{_rule_id(role.name, capability)}-{flow}")
+                    rules.append({"id": ids[-1], "permission": "allow", "flows": [flow], "messages": messages,
+                                  "key_exprs": sorted(set(keys))})
+        policies.append({"id": role.name, "rules": ids, "subjects": [role.name]})
+    subjects = [{"id": role.name, "usernames": [role.name]} for role in roles.values()]
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def new_passwords(roles: tuple[str, ...] = ROLES) -> dict[str, str]:
+    """A fresh random password per role (``secrets``: 32 bytes, URL-safe, so never a ``:``)."""
+    return {role: secrets.token_urlsafe(32) for role in roles}

@@ -1,0 +1,96 @@
+"""The router with roles, over real Zenoh on loopback: who may connect, who may publish what.
+
+A router started with a run's secrets (``services.bus.credentials``) and access control
+(``services.bus.roles``) admits only its users, and drops a put its author's role does not allow.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from proto import topics
+from services.bus.credentials import Credentials, read_credentials, role_file, write_run_secrets
+from services.bus.roles import access_control, new_passwords, run_roles
+from services.bus.router import free_tcp_port, start_router
+from services.bus.zenoh_transport import ZenohTransport
+
+pytestmark = pytest.mark.integration
+RUN = "acl"
+
+
+def wait_for(predicate, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
+
+
+@pytest.fixture
+def router(tmp_path: Path):
+    auth = write_run_secrets(tmp_path, new_passwords(), access_control(run_roles(RUN, "cdl")))
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    session = start_router(endpoint, auth)
+    opened: list[ZenohTransport] = []
+
+    def client(role: str) -> ZenohTransport:
+        opened.append(ZenohTransport(endpoint, read_credentials(role_file(tmp_path, role))))
+        return opened[-1]
+
+    yield endpoint, client
+    for transport in opened:
+        transport.close()
+    session.close()
+
+
+def test_secrets_are_private_to_their_owner(tmp_path: Path) -> None:
+    write_run_secrets(tmp_path, new_passwords(), access_control(run_roles(RUN, "cdl")))
+    assert (tmp_path / "secrets").stat().st_mode & 0o777 == 0o700
+    files = list((tmp_path / "secrets").iterdir())
+    assert len(files) == 10 and all(f.stat().st_mode & 0o777 == 0o600 for f in files)
+    assert "password=<hidden>" in repr(read_credentials(role_file(tmp_path, "operator")))
+
+
+@pytest.mark.parametrize("credentials", [None, Credentials("env-worker", "wrong"), Credentials("nobody", "x")],
+                         ids=["anonymous", "wrong-password", "unknown-user"])
+def test_clients_without_valid_credentials_are_refused(router, credentials) -> None:
+    endpoint, _ = router
+    with pytest.raises(zenoh.ZError):
+        ZenohTransport(endpoint, credentials).close()
+
+
+def test_an_env_worker_cannot_publish_control_or_weights_and_the_operator_can(router) -> None:
+    """Each forgery is followed, on the same links, by a message its subscriber must get: had the router
+    let the forgery through, it would have arrived first (one link, one subscriber, in order)."""
+    _, client = router
+    control, weights, batches = [], [], []
+    client("supervisor").subscribe(topics.control(RUN, "all"), lambda k, p: control.append(p))
+    client("graph-evaluator").subscribe(topics.weights(RUN, "cdl"), lambda k, p: weights.append(p))
+    learner = client("dynamics-learner")
+    learner.subscribe(topics.transitions(RUN), lambda k, p: batches.append(p))
+    worker, operator = client("env-worker"), client("operator")
+    wait_for(lambda: worker.publish(topics.transitions(RUN, "w0"), b"batch") or batches, 30, "a transition batch")
+    worker.publish(topics.control(RUN, "all"), b"forged stop")
+    worker.publish(topics.weights(RUN, "cdl"), b"forged weights")
+    worker.publish(topics.transitions(RUN, "w0"), b"last")
+    wait_for(lambda: batches[-1] == b"last", 30, "the worker's batch after its forgeries")
+    operator.publish(topics.control(RUN, "all"), b"stop")
+    learner.publish(topics.weights(RUN, "cdl"), b"weights")
+    wait_for(lambda: control and weights, 30, "the operator's stop and the learner's weights")
+    assert control == [b"stop"] and weights == [b"weights"]
+
+
+def test_queries_and_liveliness_follow_the_roles(router) -> None:
+    _, client = router
+    worker, learner, operator = client("env-worker"), client("dynamics-learner"), client("operator")
+    worker.serve_latest(topics.env_spec(RUN)).set(b"spec")
+    worker.declare_token(topics.alive(RUN, "env-worker", "0"))
+    weights = learner.serve_latest(topics.weights(RUN, "cdl"))
+    weights.set(b"w")
+    wait_for(lambda: learner.query(topics.env_spec(RUN)) == [(topics.env_spec(RUN), b"spec")], 30, "the env spec")
+    assert worker.query(topics.weights(RUN, "cdl")) == []  # an env-worker may not read the dynamics model
+    wait_for(lambda: operator.alive(topics.alive(RUN)) == [topics.alive(RUN, "env-worker", "0")], 30, "the token")
