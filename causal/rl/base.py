@@ -10,7 +10,7 @@ observation dimensions whose False entries are zeroed before any network sees th
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any, Protocol, Sequence, runtime_checkable
 
 import gymnasium as gym
@@ -118,6 +118,14 @@ class Agent(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`state_dict` returned."""
         ...
+
+
+def on_device(batch: Any, device: torch.device) -> Any:
+    """A :class:`RolloutBatch` or :class:`ReplayBatch` with its tensors on ``device`` (itself if they are)."""
+    tensors = {f.name: getattr(batch, f.name) for f in fields(batch) if isinstance(getattr(batch, f.name), torch.Tensor)}
+    if all(t.device == device for t in tensors.values()):
+        return batch
+    return replace(batch, **{name: t.to(device) for name, t in tensors.items()})
 
 
 def abstraction_input_mask(layout: FactorLayout, kept: Sequence[int], extra_dims: int = 0) -> np.ndarray:

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.distributions import Categorical, Distribution, Independent, Normal
 
-from causal.rl.base import ActionSpec, RolloutBatch, as_batch
+from causal.rl.base import ActionSpec, RolloutBatch, as_batch, on_device
 from causal.rl.networks import InputMask, mlp
 
 
@@ -119,7 +119,15 @@ class PPOAgent:
         self.net = ActorCritic(obs_dim, action, cfg, input_mask)
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=cfg.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(seed)
+        """On the CPU whatever the device: the same draws on any device."""
+        self.device = torch.device("cpu")
         self.version = 0
+
+    def to(self, device: torch.device) -> None:
+        """Learn on ``device`` (before the first update). Inputs may come on the CPU; what the agent
+        returns (actions, values, :class:`PolicyStep`) is on the CPU."""
+        self.net.to(device)
+        self.device = device
 
     def set_input_mask(self, mask: np.ndarray | Sequence[bool] | None) -> None:
         """Apply a new abstraction to the policy input (None switches masking off)."""
@@ -128,10 +136,12 @@ class PPOAgent:
     @torch.no_grad()
     def policy_step(self, obs: np.ndarray | torch.Tensor, deterministic: bool = False) -> PolicyStep:
         """Sample (or take the mode of) the policy for observations ``[B, obs_dim]``."""
-        x, _ = as_batch(obs)
+        x = as_batch(obs)[0].to(self.device)
         dist = self.net.distribution(x)
         actions = self._mode(dist) if deterministic else self._sample(dist)
-        return PolicyStep(self.to_env_actions(actions), actions, dist.log_prob(actions), self.net.value(x))
+        log_probs, values = dist.log_prob(actions).cpu(), self.net.value(x).cpu()
+        actions = actions.cpu()
+        return PolicyStep(self.to_env_actions(actions), actions, log_probs, values)
 
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """Env-ready actions for ``[B, obs_dim]`` observations, or one action for one observation."""
@@ -142,7 +152,7 @@ class PPOAgent:
     @torch.no_grad()
     def value(self, obs: np.ndarray | torch.Tensor) -> np.ndarray:
         """State values ``[B]``."""
-        return self.net.value(as_batch(obs)[0]).numpy()
+        return self.net.value(as_batch(obs)[0].to(self.device)).cpu().numpy()
 
     def to_env_actions(self, actions: torch.Tensor) -> np.ndarray:
         """Raw sampled actions -> what the environment takes (indices, or bounded vectors)."""
@@ -156,6 +166,7 @@ class PPOAgent:
 
     def update(self, batch: RolloutBatch) -> dict[str, float]:
         """``cfg.epochs`` passes of clipped-surrogate minibatch steps over one rollout."""
+        batch = on_device(batch, self.device)
         with torch.no_grad():
             last_values = self.net.value(batch.last_obs)
         advantages, returns = gae(batch.rewards, batch.values, batch.dones, last_values,
@@ -166,7 +177,8 @@ class PPOAgent:
         totals: dict[str, float] = {}
         steps = 0
         for _ in range(self.cfg.epochs):
-            for index in torch.randperm(flat[0].shape[0], generator=self.generator).split(self.cfg.minibatch_size):
+            order = torch.randperm(flat[0].shape[0], generator=self.generator).to(self.device)
+            for index in order.split(self.cfg.minibatch_size):
                 for key, value in self._minibatch_step(*(t[index] for t in flat)).items():
                     totals[key] = totals.get(key, 0.0) + value
                 steps += 1
@@ -195,9 +207,9 @@ class PPOAgent:
 
     def _sample(self, dist: Distribution) -> torch.Tensor:
         if isinstance(dist, Categorical):
-            return torch.multinomial(dist.probs, 1, generator=self.generator).squeeze(-1)
+            return torch.multinomial(dist.probs.cpu(), 1, generator=self.generator).squeeze(-1).to(self.device)
         base = dist.base_dist
-        return base.loc + base.scale * torch.randn(base.loc.shape, generator=self.generator)
+        return base.loc + base.scale * torch.randn(base.loc.shape, generator=self.generator).to(self.device)
 
     @staticmethod
     def _mode(dist: Distribution) -> torch.Tensor:

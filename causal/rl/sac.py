@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from causal.rl.base import ActionSpec, ReplayBatch, as_batch
+from causal.rl.base import ActionSpec, ReplayBatch, as_batch, on_device
 from causal.rl.networks import InputMask, mlp
 
 
@@ -55,7 +55,7 @@ class SquashedGaussianActor(nn.Module):
         """Actions in the env's bounds and their log-probabilities ``[B]``."""
         mean, log_std = self.body(self.input_mask(obs)).chunk(2, dim=-1)
         log_std = log_std.clamp(self.cfg.log_std_min, self.cfg.log_std_max)
-        noise = torch.zeros_like(mean) if deterministic else torch.randn(mean.shape, generator=generator)
+        noise = torch.zeros_like(mean) if deterministic else torch.randn(mean.shape, generator=generator).to(mean.device)
         raw = mean + log_std.exp() * noise
         log_prob = (-0.5 * noise.square() - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
         # log(1 - tanh(u)^2) in a stable form, plus the affine scaling into the bounds.
@@ -103,7 +103,17 @@ class SACAgent:
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.lr)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.lr)
         self.generator = torch.Generator().manual_seed(seed)
+        self.device = torch.device("cpu")
         self.version = 0
+
+    def to(self, device: torch.device) -> None:
+        """Learn on ``device`` (before the first update; the temperature's optimiser is made anew).
+        Inputs may come on the CPU; actions are returned on the CPU."""
+        for module in (self.actor, self.critic, self.target_critic):
+            module.to(device)
+        self.log_alpha = self.log_alpha.detach().to(device).requires_grad_(True)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=self.cfg.lr)
+        self.device = device
 
     @property
     def alpha(self) -> float:
@@ -118,11 +128,12 @@ class SACAgent:
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """Bounded actions ``[B, A]`` for ``[B, obs_dim]`` observations (``[A]`` for one)."""
         x, single = as_batch(obs)
-        actions = self.actor(x, deterministic, self.generator)[0].numpy()
+        actions = self.actor(x.to(self.device), deterministic, self.generator)[0].cpu().numpy()
         return actions[0] if single else actions
 
     def update(self, batch: ReplayBatch) -> dict[str, float]:
         """One gradient step each for the critics, the actor and the temperature; then Polyak."""
+        batch = on_device(batch, self.device)
         stats = self._critic_step(batch)
         stats.update(self._actor_and_alpha_step(batch.obs))
         with torch.no_grad():

@@ -36,6 +36,7 @@ from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.options import Decision, OptionStitcher
 from causal.rl.policy_weights import MODEL, export_policy, policy_config_json
 from services.runtime.checkpoint import load_checkpoint, save_checkpoint
+from services.runtime.device import resolve_device
 
 DROP_REASONS = ("stale", "future", "random_policy", "unknown_policy")
 
@@ -62,8 +63,9 @@ class _Segment:
 
 
 @torch.no_grad()
-def _log_probs(net: ActorCritic, obs: np.ndarray, options: np.ndarray) -> np.ndarray:
-    return net.distribution(torch.from_numpy(obs)).log_prob(torch.from_numpy(options).long()).numpy()
+def _log_probs(net: ActorCritic, obs: np.ndarray, options: np.ndarray, device: torch.device) -> np.ndarray:
+    dist = net.distribution(torch.from_numpy(obs).to(device))
+    return dist.log_prob(torch.from_numpy(options).long().to(device)).cpu().numpy()
 
 
 def _decision_segment(run: list[Decision]) -> _Segment:
@@ -113,6 +115,10 @@ class PolicyLearnerCore:
             self.agent: PPOAgent | SACAgent = PPOAgent(spec.state_dim, self.action, cfg.ppo(), seed=cfg.seed)
         else:
             self.agent = SACAgent(spec.state_dim, self.action, cfg.sac(), seed=cfg.seed)
+        self.device = resolve_device(cfg.device)
+        """Where the agent learns (its networks and the behaviour policies' copies); batches and
+        segments are kept on the CPU and moved for each computation."""
+        self.agent.to(self.device)
         self.replay = UniformReplay(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.version = 0
         self.behaviour: dict[int, ActorCritic] = {}
@@ -150,7 +156,7 @@ class PolicyLearnerCore:
             reward = reward + self.cfg.intrinsic_coef * intrinsic
         if self.stitcher is not None:
             net = self.behaviour[batch.policy_version]
-            runs = self.stitcher.add(batch, reward, lambda obs, opt: _log_probs(net, obs, opt))
+            runs = self.stitcher.add(batch, reward, lambda obs, opt: _log_probs(net, obs, opt, self.device))
             self.pending.extend(_decision_segment(run) for run in runs)
         elif isinstance(self.agent, PPOAgent):
             self.pending.append(self._segment(batch, reward.astype(np.float32)))
@@ -175,7 +181,8 @@ class PolicyLearnerCore:
         net = self.behaviour[batch.policy_version]
         actions = torch.from_numpy(batch.action)
         actions = actions[:, 0].round().long() if self.action.kind == "categorical" else actions
-        return _Segment(obs, actions, net.distribution(obs).log_prob(actions), torch.from_numpy(reward),
+        log_probs = net.distribution(obs.to(self.device)).log_prob(actions.to(self.device)).cpu()
+        return _Segment(obs, actions, log_probs, torch.from_numpy(reward),
                         torch.from_numpy(batch.terminated | batch.truncated),
                         torch.from_numpy(batch.truncated & ~batch.terminated), torch.from_numpy(batch.next_state))
 
@@ -203,8 +210,8 @@ class PolicyLearnerCore:
         columns = [s for s in self.pending if len(s.rewards) == steps][: self.cfg.rollout_batches]
         self.pending = [s for s in self.pending if all(s is not c for c in columns)]
         obs, next_obs, truncated = (_stack(columns, name) for name in ("obs", "next_obs", "truncated"))
-        values = self.agent.net.value(obs)
-        bootstrap = self.agent.cfg.gamma * self.agent.net.value(next_obs) * truncated.float()
+        values = self.agent.net.value(obs.to(self.device)).cpu()
+        bootstrap = self.agent.cfg.gamma * self.agent.net.value(next_obs.to(self.device)).cpu() * truncated.float()
         return RolloutBatch(obs, _stack(columns, "actions"), _stack(columns, "log_probs"), values,
                             _stack(columns, "rewards") + bootstrap, _stack(columns, "dones"), next_obs[-1],
                             policy_version=self.version)

@@ -100,7 +100,7 @@ def _publish(shell: ServiceShell, core, latest, metrics: _Metrics) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    service_main(SERVICE, PolicyLearnerConfig, run, argv)
+    service_main(SERVICE, PolicyLearnerConfig, run, argv, models=True)
 
 
 if __name__ == "__main__":

@@ -81,7 +81,7 @@ def test_run_with_cuda_and_no_gpu_exits_2_before_anything_starts(tmp_path, capsy
 
 
 @pytest.mark.parametrize("module", ["services.dynamics_learner.service", "services.graph_evaluator.service",
-                                    "services.intrinsic_reward.service"])
+                                    "services.intrinsic_reward.service", "services.policy_learner.service"])
 def test_a_service_started_on_its_own_with_cuda_and_no_gpu_exits_78(module: str, monkeypatch, no_cuda) -> None:
     import importlib
 
@@ -206,3 +206,24 @@ def test_each_model_service_picks_the_device_its_model_can_use(monkeypatch) -> N
     assert ensemble.device == torch.device("cpu")
     cbm = GraphEvaluatorCore(build_config(GraphEvaluatorConfig, method="cbm", device="auto"), spec)
     assert cbm.device == torch.device("cpu")
+
+
+def test_policy_agents_move_every_tensor_they_learn_with() -> None:
+    """``to(device)`` of PPO and SAC leaves nothing behind (checked on torch's meta device), and
+    batches are moved to the agent's device by ``on_device``."""
+    from causal.rl import ActionSpec, PPOAgent, SACAgent
+    from causal.rl.base import ReplayBatch, on_device
+
+    meta = torch.device("meta")
+    ppo = PPOAgent(6, ActionSpec("continuous", 2, (-1.0, -1.0), (1.0, 1.0)))
+    ppo.to(meta)
+    assert {t.device.type for t in [*ppo.net.parameters(), *ppo.net.buffers()]} == {"meta"}
+    sac = SACAgent(6, ActionSpec("continuous", 2, (-1.0, -1.0), (1.0, 1.0)))
+    sac.to(meta)
+    modules = (sac.actor, sac.critic, sac.target_critic)
+    assert {t.device.type for m in modules for t in [*m.parameters(), *m.buffers()]} == {"meta"}
+    assert sac.log_alpha.is_meta and sac.alpha_optimizer.param_groups[0]["params"][0] is sac.log_alpha
+    batch = ReplayBatch(torch.zeros(4, 6), torch.zeros(4, 2), torch.zeros(4), torch.zeros(4, 6), torch.zeros(4))
+    assert on_device(batch, torch.device("cpu")) is batch
+    moved = on_device(batch, meta)
+    assert all(getattr(moved, name).is_meta for name in ("obs", "actions", "rewards", "next_obs", "terminated"))
