@@ -25,6 +25,7 @@ The loop baseline (same run) checks that the batched module computes the loop's 
 terms and measures what the batching alone buys, at ``--width``.
 
     python -m benchmarks.bench_cdl_update [--objects 5] [--batch 64] [--width 64] [--updates 20] [--device cpu]
+    python -m benchmarks.bench_cdl_update --objects 10 --profile    # where a like-for-like update's time goes
 """
 from __future__ import annotations
 
@@ -134,6 +135,19 @@ def trainer_seconds(layout: FactorLayout, cfg: CDLConfig, batch: tuple[torch.Ten
     return statistics.median(times)
 
 
+def profile_like_for_like(layout: FactorLayout, batch: tuple[torch.Tensor, ...], updates: int = 10) -> None:
+    """Where a like-for-like update spends its time: torch's operator profile, by self CPU time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    trainer = CDLTrainer(layout, SETTINGS["like for like"], seed=0)
+    for _ in range(3):
+        trainer.update(*batch)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(updates):
+            trainer.update(*batch)
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+
+
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -148,10 +162,14 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3, help="timed rounds; the median is reported")
     p.add_argument("--device", default="cpu", help="where Causeway's trainer runs (cpu, cuda)")
     p.add_argument("--no-loop", action="store_true", help="skip the per-factor loop baseline")
+    p.add_argument("--profile", action="store_true", help="only print torch's operator profile of 10 like-for-like updates")
     args = p.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     layout, batch = chemical_batch(args.objects, args.batch)
+    if args.profile:
+        profile_like_for_like(layout, batch)
+        return
     model = CDLModel(layout, CDLConfig(feature_hidden=args.width, feature_dim=args.width, predictor_hidden=args.width))
     print(f"CDL update, {args.objects} objects ({model.num_outputs} factors), batch {args.batch}, 1 thread, "
           f"Causeway on {args.device}")
