@@ -33,8 +33,9 @@ The publisher's egress ``declare_subscriber`` is not optional: a declared publis
 writer side, sending only while it knows of a matching subscriber, and learns of them from the
 router's subscriber declarations. Without it, a client that declared a publisher on a key it may not
 use stopped delivering on its *allowed* publishers too (every put after that declaration dropped),
-and whether a first put got through depended on timing. The querier's egress ``declare_queryable``
-is there for the same reason (queries are routed by what the router declares to the client).
+and whether a first put got through depended on timing. Those declarations carry the subscriber's
+key expression, so a publisher is allowed the subscriptions of every role that meet its keys (see
+``_allowed_messages``); the querier's egress ``declare_queryable`` likewise.
 
 This module is pure: :func:`run_roles` declares, :func:`access_control` renders the router's JSON,
 :func:`new_passwords` draws passwords; files are written by :mod:`services.bus.credentials`.
@@ -42,10 +43,11 @@ This module is pure: :func:`run_roles` declares, :func:`access_control` renders 
 from __future__ import annotations
 
 import secrets
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 from proto import topics
+from services.bus.memory import key_intersects
 
 SERVICES = ("env-worker", "dynamics-learner", "graph-evaluator", "intrinsic-reward", "policy-learner",
             "dashboard")
@@ -121,8 +123,23 @@ def run_roles(run: str, method: str, dashboard_run: str | None = None) -> dict[s
     return {role.name: role for role in roles}
 
 
-def _rule_id(role: str, capability: str) -> str:
-    return f"{role}-{capability}"
+def _allowed_messages(role: Role, roles: dict[str, Role]) -> dict[tuple[str, str], set[str]]:
+    """(flow, ACL message) -> the key expressions ``role`` may use it on.
+
+    A subscription is declared to a publisher with the *subscriber's* key expression (``stats/*/*``
+    to a worker publishing ``stats/env-worker/0``), and a router allows an egress declaration only
+    inside the rule's keys; so a publisher is also allowed every subscription of any role that meets
+    its keys, and a querier every queryable that meets its queries. Without that a subscriber that
+    came after the publisher (``causeway status`` reading stats beats) never received anything."""
+    allowed: dict[tuple[str, str], set[str]] = {}
+    for capability, pairs in CAPABILITIES.items():
+        for pair in pairs:
+            allowed.setdefault(pair, set()).update(getattr(role, capability))
+    for mine, theirs, message in (("publish", "subscribe", "declare_subscriber"), ("query", "serve", "declare_queryable")):
+        allowed[("egress", message)].update(
+            key for other in roles.values() for key in getattr(other, theirs)
+            if any(key_intersects(key, own) for own in getattr(role, mine)))
+    return {pair: keys for pair, keys in allowed.items() if keys}
 
 
 def access_control(roles: dict[str, Role]) -> dict[str, Any]:
@@ -131,14 +148,10 @@ def access_control(roles: dict[str, Role]) -> dict[str, Any]:
     rules, policies = [], []
     for role in roles.values():
         ids = []
-        for capability in (f.name for f in fields(Role) if f.name != "name"):
-            keys = getattr(role, capability)
-            for flow in ("ingress", "egress"):
-                messages = [m for f, m in CAPABILITIES[capability] if f == flow]
-                if keys and messages:
-                    ids.append(f"{_rule_id(role.name, capability)}-{flow}")
-                    rules.append({"id": ids[-1], "permission": "allow", "flows": [flow], "messages": messages,
-                                  "key_exprs": sorted(set(keys))})
+        for (flow, message), keys in sorted(_allowed_messages(role, roles).items()):
+            ids.append(f"{role.name}-{flow}-{message}")
+            rules.append({"id": ids[-1], "permission": "allow", "flows": [flow], "messages": [message],
+                          "key_exprs": sorted(keys)})
         policies.append({"id": role.name, "rules": ids, "subjects": [role.name]})
     subjects = [{"id": role.name, "usernames": [role.name]} for role in roles.values()]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,

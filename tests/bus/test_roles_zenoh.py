@@ -94,3 +94,14 @@ def test_queries_and_liveliness_follow_the_roles(router) -> None:
     wait_for(lambda: learner.query(topics.env_spec(RUN)) == [(topics.env_spec(RUN), b"spec")], 30, "the env spec")
     assert worker.query(topics.weights(RUN, "cdl")) == []  # an env-worker may not read the dynamics model
     wait_for(lambda: operator.alive(topics.alive(RUN)) == [topics.alive(RUN, "env-worker", "0")], 30, "the token")
+
+
+def test_a_subscriber_that_comes_after_the_publisher_receives(router) -> None:
+    """``causeway status`` subscribes to ``stats/*/*`` long after the services declared their publishers:
+    the router must be allowed to tell each publisher of that subscription (see ``roles._allowed_messages``)."""
+    _, client = router
+    worker, beat = client("env-worker"), topics.stats(RUN, "env-worker", "0")
+    worker.publish(beat, b"before anyone listens")
+    beats: list[bytes] = []
+    client("operator").subscribe(topics.stats(RUN), lambda k, p: beats.append(p))
+    wait_for(lambda: worker.publish(beat, b"beat", reliable=False) or beats, 30, "a beat")

@@ -66,8 +66,9 @@ def test_a_run_with_roles_learns_refuses_strangers_and_forgeries(tmp_path: Path)
         assert stack.poll() is None
         status = causeway("status", "--run-dir", str(run_dir), "--json")
         assert status.returncode == 0, status.stderr
-        services = {row["service"] for row in json.loads(status.stdout)["services"]}
-        assert {"env-worker", "dynamics-learner", "graph-evaluator", "supervisor"} <= services
+        rows = json.loads(status.stdout)["services"]
+        assert {"env-worker", "dynamics-learner", "graph-evaluator", "supervisor"} <= {r["service"] for r in rows}
+        assert all(r["beats"] for r in rows if r["service"] == "env-worker")  # stats reach a late subscriber
         stop = causeway("stop", "--run-dir", str(run_dir), "--timeout-s", "120")
         assert stop.returncode == 0, stop.stdout + stop.stderr
         out, _ = stack.communicate(timeout=180)
