@@ -58,6 +58,11 @@ def test_a_second_run_on_a_directory_still_in_use_is_refused(tmp_path) -> None:
                  "processes": {"env-worker-0": {"pid": child.pid, "module": "services.env_worker"},
                                "dynamics-learner": {"pid": os.getpid(), "module": "services.dynamics_learner"}}}
         (tmp_path / "processes.json").write_text(json.dumps(table))
+        # between fork and exec the child's command line is still this process's: wait for the exec
+        cmdline = Path(f"/proc/{child.pid}/cmdline")
+        deadline = time.monotonic() + 30
+        while b"services.env_worker" not in cmdline.read_bytes() and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert leftovers(tmp_path) == [f"env-worker-0 (pid {child.pid})"]
     finally:
         child.kill()
