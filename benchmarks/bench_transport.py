@@ -67,7 +67,7 @@ def over_zenoh(seconds: float, workers: int) -> float:
     from services.supervisor.supervisor import Supervisor
     from services.supervisor.wiring import MODULES, service_configs
     cfg = build_config(RunConfig, **RUN, workers=workers, router_port=0, run_dir=tempfile.mkdtemp(prefix="causeway-bench-zenoh-"),
-                    run_id="bench-zenoh", dashboard_port=0)
+                    run_id="bench-zenoh", dashboard_port=0, bus_auth=False)  # it starts an open router itself
     sup = Supervisor(cfg)
     sup.run_dir.mkdir(parents=True, exist_ok=True)
     from services.bus.router import start_router, wait_for_router

@@ -55,9 +55,9 @@ class RunConfig(RunSettings):
     run_id: str = doc("", "run id (default: derived from env, graph and time)")
     run_dir: str = doc("", "run directory (default: runs/<run_id>); an existing one is resumed")
     router_port: int = doc(7447, "TCP port of the Zenoh router on 127.0.0.1 (0: pick a free one)")
-    bus_auth: bool = doc(False, "roles on the bus: the router admits only clients with this run's credentials "
-                                "(fresh per start, in <run_dir>/secrets/, mode 600) and lets each role publish "
-                                "and subscribe only its own keys (services.bus.roles)")
+    bus_auth: bool = doc(True, "roles on the bus: the router admits only clients with this run's credentials "
+                               "(fresh per start, in <run_dir>/secrets/, mode 600) and lets each role publish "
+                               "and subscribe only its own keys (services.bus.roles); false: an open router")
     metrics_base_port: int = doc(9100, "Prometheus ports: learner +1, evaluator +2, worker i +10+i (0: none)")
     dashboard_port: int = doc(8080, "port of the live causal-graph page on 127.0.0.1 (0: no dashboard)")
     progress: bool = doc(True, "show live progress on the terminal")
