@@ -47,8 +47,9 @@ class StableGraph:
         """Reports in a row with the current graph, and when it first appeared."""
 
     def observe(self, report: GraphReport | None, elapsed: float) -> None:
-        """Count ``report`` once (the supervisor passes the newest report at every check)."""
-        if report is None or (report.weights_version, report.timestamp) == self._last:
+        """Count ``report`` once (the supervisor passes the newest report at every check); nothing
+        to count while the rule is off."""
+        if not (self.reports or self.seconds) or report is None or (report.weights_version, report.timestamp) == self._last:
             return
         self._last = (report.weights_version, report.timestamp)
         graph = report.adjacency.tobytes() + (b"" if report.reward_parents is None else report.reward_parents.tobytes())
