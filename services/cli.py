@@ -11,6 +11,8 @@ stack (``causeway <command> --help`` for each; ``services/ops/``):
 
 and one acts on a finished run: ``causeway final-graph --run-dir runs/X`` (the final model's graph on
 all held-out data into the run's summary; ``services.supervisor.final_graph``).
+``causeway bus-secrets --run RUN --out DIR`` writes a stack's bus credentials and router
+configuration where no supervisor draws them (compose, Kubernetes; ``services.ops.bus_secrets``).
 """
 from __future__ import annotations
 
@@ -76,6 +78,7 @@ COMMANDS: dict[str, Command] = {
     "stop": _operator("stop", "control", "stop_main"),
     "checkpoint": _operator("checkpoint", "control", "checkpoint_main"),
     "final-graph": lambda argv: importlib.import_module("services.supervisor.final_graph").main(argv),
+    "bus-secrets": lambda argv: importlib.import_module("services.ops.bus_secrets").main(argv),
 }
 
 
