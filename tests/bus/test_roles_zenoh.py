@@ -105,3 +105,38 @@ def test_a_subscriber_that_comes_after_the_publisher_receives(router) -> None:
     beats: list[bytes] = []
     client("operator").subscribe(topics.stats(RUN), lambda k, p: beats.append(p))
     wait_for(lambda: worker.publish(beat, b"beat", reliable=False) or beats, 30, "a beat")
+
+
+FORGERIES = [
+    # (forger, key, its rightful publisher, a subscriber of the key): issue 20's forged messages
+    ("env-worker", topics.control(RUN, "all"), "operator", "supervisor"),  # a forged stop
+    ("dashboard", topics.control(RUN, "all"), "supervisor", "dynamics-learner"),
+    ("env-worker", topics.control(RUN, "supervisor"), "operator", "supervisor"),  # a forged scale request
+    ("env-worker", topics.weights(RUN, "cdl"), "dynamics-learner", "graph-evaluator"),  # forged weights
+    ("graph-evaluator", topics.weights(RUN, "cdl"), "dynamics-learner", "intrinsic-reward"),
+    ("intrinsic-reward", topics.weights(RUN, "policy"), "policy-learner", "env-worker"),
+    ("env-worker", topics.graph(RUN, "cdl"), "graph-evaluator", "supervisor"),  # a forged report
+    ("dynamics-learner", topics.graph(RUN, "cdl"), "graph-evaluator", "policy-learner"),
+    ("dynamics-learner", topics.transitions(RUN, "w0"), "env-worker", "graph-evaluator"),  # forged batches
+    ("operator", topics.scored(RUN, "w0"), "intrinsic-reward", "policy-learner"),
+]
+
+
+@pytest.mark.parametrize("forger,key,owner,reader", FORGERIES, ids=[f"{f}->{k.split('/', 2)[2]}" for f, k, _, _ in FORGERIES])
+def test_a_forgery_by_the_wrong_role_never_arrives(router, forger: str, key: str, owner: str, reader: str) -> None:
+    """The forger's own beat, sent after the forgery on the same link, is seen first; the owner's message
+    is sent after that, so a forgery the router let through would reach the reader before it."""
+    _, client = router
+    read, synced = [], []
+    # a key the forger may publish and the supervisor reads: its stats beat (the operator's: control/all)
+    sync = topics.control(RUN, "all") if forger == "operator" else topics.stats(RUN, forger, "0")
+    client(reader).subscribe(key, lambda k, p: read.append(p))
+    client("supervisor").subscribe(sync, lambda k, p: synced.append(p))
+    forging, owning = client(forger), client(owner)
+    wait_for(lambda: owning.publish(key, b"warm-up") or read, 30, "the owner's message")
+    forging.publish(key, b"forged")
+    forging.publish(sync, b"sync")
+    wait_for(lambda: b"sync" in synced, 30, "the forger's next message")
+    owning.publish(key, b"owner")
+    wait_for(lambda: b"owner" in read, 30, "the owner's message")
+    assert b"forged" not in read, read
