@@ -10,6 +10,8 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -41,14 +43,22 @@ def causeway(*args: str) -> subprocess.CompletedProcess:
                           timeout=180)
 
 
+def dashboard_graph(port: int) -> bool:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/runs/run", timeout=10) as response:
+            return bool(json.loads(response.read()).get("graph"))
+    except (urllib.error.URLError, OSError, ValueError):
+        return False
+
+
 def test_a_run_with_roles_learns_refuses_strangers_and_forgeries(tmp_path: Path) -> None:
-    port, run_dir = free_tcp_port(), tmp_path / "run"
+    port, run_dir, page = free_tcp_port(), tmp_path / "run", free_tcp_port()
     connect = f"tcp/127.0.0.1:{port}"
     stack = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "run", "--bus-auth", "true", "--graph", "collider", "--num-objects", "3",
          "--max-seconds", "600", "--router-port", str(port), "--metrics-base-port", "0", "--run-dir", str(run_dir),
          "--evaluator-min-interval-s", "1", "--learner-publish-every-s", "1", "--progress", "false",
-         "--worker-max-steps-per-second", "1000", "--dashboard-port", str(free_tcp_port()), "--evaluate", "false"],
+         "--worker-max-steps-per-second", "1000", "--dashboard-port", str(page), "--evaluate", "false"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: (run_dir / "processes.json").exists(), 120, "the process table")
@@ -64,6 +74,7 @@ def test_a_run_with_roles_learns_refuses_strangers_and_forgeries(tmp_path: Path)
             seen = len(reports)
             wait_for(lambda: len(reports) > seen + 1, 300, "graph reports after the forged stop")
         assert stack.poll() is None
+        wait_for(lambda: dashboard_graph(page), 120, "the dashboard's graph")  # its role reads graphs
         status = causeway("status", "--run-dir", str(run_dir), "--json")
         assert status.returncode == 0, status.stderr
         rows = json.loads(status.stdout)["services"]
