@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 from typing import Sequence, TextIO
 
 from proto import topics
@@ -24,7 +25,7 @@ from proto.messages import Control
 from services.bus.base import Transport
 from services.ops.observe import Instance, RunObserver
 from services.ops.target import (EXIT_NOT_CONFIRMED, OpsError, Target, add_target_arguments, check_scalable,
-                                 open_bus, resolve_target)
+                                 open_bus, resolve_target, run_dir_config)
 
 SETTLE_S = 3.0
 """How long a new watcher may take to report the tokens alive now (only a loaded machine needs long)."""
@@ -122,6 +123,10 @@ def scale_main(argv: Sequence[str], out: TextIO | None = None) -> int:
 
         return compose_scale.main(args.compose_project, args.service, args.count, args.docker_host, out)
     target = resolve_target(args)
+    limit = run_dir_config(Path(args.run_dir)).get("max_workers") if args.run_dir else None
+    if isinstance(limit, int) and args.count > limit:
+        raise OpsError(f"the run allows at most {limit} {args.service} instances (--max-workers); its supervisor "
+                       f"would refuse {args.count}")
     with open_bus(target) as bus:
         return scale_local(bus, target.run_id, args.service, args.count, args.timeout_s, out)
 

@@ -99,10 +99,15 @@ def _credentials(args: argparse.Namespace, environ: Mapping[str, str]) -> Creden
         raise OpsError(str(exc)) from None
 
 
+def run_dir_config(run_dir: Path) -> dict:
+    """The settings a local run was started with (its ``config.json``; empty if there is none)."""
+    return _read_json(run_dir / "config.json") or {}
+
+
 def _run_uses_auth(run_dir: Path) -> bool:
     """Whether the run was started with ``--bus-auth`` (a router without it refuses any credentials,
     so a run dir resumed without it must not lend its old ones)."""
-    return bool((_read_json(run_dir / "config.json") or {}).get("bus_auth"))
+    return bool(run_dir_config(run_dir).get("bus_auth"))
 
 
 def read_run_dir(run_dir: Path) -> Target:

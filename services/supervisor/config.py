@@ -41,6 +41,9 @@ class RunConfig(RunSettings):
 
     env: str = doc("chemical", "environment (envs.registry)", choices=env_names)
     workers: int = doc(1, "number of env-worker processes")
+    max_workers: int = doc(64, "most env-worker processes a scale request may ask for (causeway scale); a request "
+                               "for more is refused and logged, so a forged or mistyped one cannot start workers "
+                               "without bound")
     max_seconds: float = doc(900.0, "stop after this many seconds of wall time (0: no limit)")
     max_env_steps: int = doc(0, "stop after this many env steps (0: no limit); with --learner-updates-per-env-step "
                                 "the env-workers pause there and the run stops once the learner caught up")
@@ -88,6 +91,8 @@ class RunConfig(RunSettings):
         super().__post_init__()
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.max_workers < self.workers:
+            raise ValueError(f"max_workers must be >= workers ({self.workers}), got {self.max_workers}")
         for name in ("max_seconds", "max_env_steps", "catch_up_timeout_s", "target_f1", "stable_reports",
                      "stable_seconds"):
             if not getattr(self, name) >= 0:

@@ -157,8 +157,9 @@ class Supervisor:
         while not self.pending_scale.empty():
             argument = self.pending_scale.get_nowait()
             service, _, count = argument.partition("=")
-            if service != "env-worker" or not count.isdigit():
-                log.warning("ignored scale request %r (expected env-worker=N)", argument)
+            if service != "env-worker" or not count.isdigit() or int(count) > self.cfg.max_workers:
+                log.warning("ignored scale request %r (expected env-worker=N, N <= --max-workers %d)", argument,
+                            self.cfg.max_workers)
                 continue
             self.scale_workers(int(count))
 
