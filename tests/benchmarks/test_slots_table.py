@@ -16,6 +16,7 @@ def test_slots_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[st
     result = json.loads(out.read_text())["results"][0]
     for variant in VARIANTS:
         assert -1.0 <= result[variant]["slots"]["fg_ari"] <= 1.0
+        assert 0.0 <= result[variant]["slot_identity"] <= 1.0
     assert "fg_ari_with_masks" in result["always"] and "fg_ari_with_masks" not in result["none"]
     printed = capsys.readouterr().out
     assert all(f"| {variant} |" in printed for variant in VARIANTS)
