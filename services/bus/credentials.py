@@ -35,6 +35,15 @@ class Credentials:
 
 
 @dataclass(frozen=True)
+class RouterTls:
+    """A router's TLS certificate and private key (PEM files), for ``tls/`` endpoints: links that leave
+    a host. Clients verify it with the CA certificate that signed it (``bus_tls_root_ca``)."""
+
+    certificate: Path
+    private_key: Path
+
+
+@dataclass(frozen=True)
 class RouterAuth:
     """What a router needs to authenticate clients and enforce the roles."""
 

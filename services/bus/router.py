@@ -26,18 +26,21 @@ import time
 
 import zenoh
 
-from services.bus.credentials import Credentials, RouterAuth
+from services.bus.credentials import Credentials, RouterAuth, RouterTls
 
 LOOPBACK_ROUTER = "tcp/127.0.0.1:7447"
 """The embedded default: the local supervisor's router."""
 
 
-def router_config(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None) -> zenoh.Config:
+def router_config(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None,
+                  tls: RouterTls | None = None) -> zenoh.Config:
     """A router listening on ``listen`` only, multicast scouting off, gossip scouting on.
 
     With ``auth``: only users of its dictionary are admitted (a client without credentials, or with a
     wrong password, fails to open its session) and each may do only what its role allows
-    (:mod:`services.bus.roles`); whatever a role does not allow is dropped by the router."""
+    (:mod:`services.bus.roles`); whatever a role does not allow is dropped by the router. With ``tls``
+    (and a ``tls/HOST:PORT`` ``listen``): the router's certificate and key, so links are encrypted
+    and clients verify the router (``client_config``'s ``root_ca``)."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     config.insert_json5("listen/endpoints", json.dumps([listen]))
@@ -46,17 +49,22 @@ def router_config(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None)
     if auth is not None:
         config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(auth.users_file)))
         config.insert_json5("access_control", json.dumps(auth.access_control))
+    if tls is not None:
+        config.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tls.certificate)))
+        config.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tls.private_key)))
     return config
 
 
-def start_router(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None) -> zenoh.Session:
+def start_router(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None,
+                 tls: RouterTls | None = None) -> zenoh.Session:
     """Open a Python session in router mode on ``listen``; close the session to stop the router."""
-    return zenoh.open(router_config(listen, auth))
+    return zenoh.open(router_config(listen, auth, tls))
 
 
-def client_config(connect: str, credentials: Credentials | None = None) -> zenoh.Config:
+def client_config(connect: str, credentials: Credentials | None = None, root_ca: str = "") -> zenoh.Config:
     """A client of the router at ``connect``: no listening, no multicast scouting; with
-    ``credentials``, it authenticates as that user."""
+    ``credentials``, it authenticates as that user; with ``root_ca`` (a PEM file), it verifies a
+    ``tls/`` router's certificate against that CA (a TLS router is refused without it)."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("client"))
     config.insert_json5("connect/endpoints", json.dumps([connect]))
@@ -65,6 +73,8 @@ def client_config(connect: str, credentials: Credentials | None = None) -> zenoh
     if credentials is not None:
         config.insert_json5("transport/auth/usrpwd/user", json.dumps(credentials.user))
         config.insert_json5("transport/auth/usrpwd/password", json.dumps(credentials.password))
+    if root_ca:
+        config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(root_ca))
     return config
 
 

@@ -131,12 +131,13 @@ class ZenohTransport(HandleRegistry):
     where the router may still be starting. Use it as a context manager, or ``close`` it; an
     interpreter exit closes whatever is still open. ``credentials``: the user this client
     authenticates as, where the router requires one (:mod:`services.bus.roles`); a router that
-    denies one of its puts or declarations drops it silently.
+    denies one of its puts or declarations drops it silently. ``root_ca``: the CA certificate that
+    signed a ``tls/`` router's certificate.
     """
 
-    def __init__(self, connect: str, credentials: Credentials | None = None) -> None:
+    def __init__(self, connect: str, credentials: Credentials | None = None, root_ca: str = "") -> None:
         self.connect = connect
-        self._session = zenoh.open(client_config(connect, credentials))
+        self._session = zenoh.open(client_config(connect, credentials, root_ca))
         self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
         super().__init__()
         with _open_lock:

@@ -53,6 +53,8 @@ class Target:
     """The ``<run>`` segment of every topic of the run."""
     credentials: Credentials | None = None
     """The operator's bus credentials, where the router requires them."""
+    root_ca: str = ""
+    """CA certificate that signed a ``tls/`` router's certificate ('' for ``tcp/``)."""
 
 
 def add_target_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,6 +70,8 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bus-credentials", default=None,
                         help="file with the operator's bus credentials, one line user:password (default: the run "
                              "dir's, else $CAUSEWAY_BUS_CREDENTIALS, else none)")
+    parser.add_argument("--bus-tls-root-ca", default=None,
+                        help="CA certificate of a tls/ router (default: $CAUSEWAY_BUS_TLS_ROOT_CA, else none)")
 
 
 def resolve_target(args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> Target:
@@ -82,7 +86,8 @@ def resolve_target(args: argparse.Namespace, environ: Mapping[str, str] | None =
         topics.alive(run_id)
     except ValueError as exc:
         raise OpsError(f"bad run id: {exc}") from None
-    return Target(connect, run_id, _credentials(args, environ))
+    root_ca = getattr(args, "bus_tls_root_ca", None) or environ.get("CAUSEWAY_BUS_TLS_ROOT_CA", "")
+    return Target(connect, run_id, _credentials(args, environ), root_ca)
 
 
 def _credentials(args: argparse.Namespace, environ: Mapping[str, str]) -> Credentials | None:
@@ -136,7 +141,7 @@ def open_bus(target: Target) -> ZenohTransport:
     import zenoh
 
     try:
-        return ZenohTransport(target.connect, target.credentials)
+        return ZenohTransport(target.connect, target.credentials, target.root_ca)
     except zenoh.ZError as exc:
         reason = str(exc).split("  at ")[0].strip()  # zenoh appends the Rust source location
         hint = "is the stack running?" + ("" if target.credentials else " does it need --bus-credentials?")

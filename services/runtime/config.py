@@ -75,6 +75,8 @@ class ServiceConfig(RunSettings):
     bus_credentials: str = doc("", "file holding this process's Zenoh user and password (one line user:password; "
                                    "a compose or Kubernetes secret, or <run_dir>/secrets/<role>.credentials of a "
                                    "local run with --bus-auth); empty: connect without credentials")
+    bus_tls_root_ca: str = doc("", "CA certificate (PEM file) that signed the router's TLS certificate, to reach a "
+                                   "router on a tls/HOST:PORT endpoint (links that leave a host); empty: none")
 
 
 SERVICE_FIELDS = tuple(f.name for f in dataclasses.fields(ServiceConfig))

@@ -217,7 +217,7 @@ def open_zenoh(cfg: ServiceConfig) -> Transport:
         except ValueError as exc:
             log.error("%s", exc)
             sys.exit(CONFIG_ERROR_EXIT)
-    return ZenohTransport(cfg.zenoh_connect, credentials)
+    return ZenohTransport(cfg.zenoh_connect, credentials, cfg.bus_tls_root_ca)
 
 
 def setup_logging(service: str) -> None:
