@@ -19,7 +19,7 @@ def test_match_run_reports_policy_broadcast_and_ood_evaluation(tmp_path: Path) -
     cmd = [sys.executable, "-m", "services.cli", "run", "--task", "match", "--graph", "chain", "--num-objects", "3",
            "--collector", "ppo", "--max-seconds", "45", "--run-dir", str(run_dir), "--router-port", "0",
            "--dashboard-port", "0", "--metrics-base-port", "0", "--progress", "false", "--evaluator-min-interval-s", "2"]
-    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=400)
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=900)  # the post-run CEM evaluation is slow on a loaded machine
     assert done.returncode == 0, done.stdout + done.stderr
     summary = json.loads((run_dir / "summary.json").read_text())
     policy = summary["policy"]
