@@ -48,7 +48,7 @@ class Budget:
     frame_size: int = 32
     train_frames: int = 4096
     eval_frames: int = 512
-    ae_updates: int = 600
+    ae_updates: int = 300
     slot_updates: int = 1500
     log_every: int = 250
 
