@@ -5,7 +5,7 @@ A router started with a run's secrets (``services.bus.credentials``) and access 
 """
 from __future__ import annotations
 
-import time
+import functools
 from pathlib import Path
 
 import pytest
@@ -16,19 +16,13 @@ from services.bus.credentials import Credentials, read_credentials, role_file, w
 from services.bus.roles import access_control, new_passwords, run_roles
 from services.bus.router import free_tcp_port, start_router
 from services.bus.zenoh_transport import ZenohTransport
+from tests import waiting
 
 pytestmark = pytest.mark.integration
 RUN = "acl"
 
 
-def wait_for(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-
+wait_for = functools.partial(waiting.wait_for, interval=0.1)
 
 @pytest.fixture
 def router(tmp_path: Path):

@@ -10,6 +10,7 @@ screenshot in test-artifacts/dashboard-reward.png.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -30,6 +31,7 @@ from services.bus.router import free_tcp_port, start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 from tests.dashboard.browser import CHROMIUM, Browser
 from tests.dashboard.reports import make_local_report, make_report, make_reward_report, make_stats
+from tests import waiting
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 REPO = Path(__file__).resolve().parents[2]
@@ -39,17 +41,7 @@ REWARD_SCREENSHOT = REPO / "test-artifacts" / "dashboard-reward.png"
 RUN = "chemical-demo"
 
 
-def wait_for(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            if value := predicate():
-                return value
-        except OSError:
-            pass
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-
+wait_for = functools.partial(waiting.wait_for, interval=0.05, tolerate=(OSError,))
 
 def fetch_json(url: str) -> dict:
     with urllib.request.urlopen(url, timeout=3) as reply:

@@ -1,10 +1,10 @@
 """The dashboard service over the in-memory bus, its HTTP API and event stream on loopback."""
 from __future__ import annotations
 
+import functools
 import http.client
 import json
 import threading
-import time
 import urllib.error
 import urllib.request
 from dataclasses import replace
@@ -20,18 +20,12 @@ from services.bus.router import free_tcp_port
 from services.dashboard import service
 from services.dashboard.config import DashboardConfig
 from tests.dashboard.reports import make_local_report, make_report, make_stats
+from tests import waiting
 
 RUN = "run-a"
 
 
-def wait_for(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := predicate():
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
-
+wait_for = functools.partial(waiting.wait_for, interval=0.02)
 
 def get(port: int, path: str) -> tuple[int, dict[str, str], bytes]:
     try:

@@ -23,20 +23,13 @@ from proto.messages import Control, GraphReport
 from services.bus.credentials import read_credentials, role_file
 from services.bus.router import free_tcp_port
 from services.bus.zenoh_transport import ZenohTransport
+from tests import waiting
 
 pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[2]
 
 
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.2):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-
+wait_for = waiting.wait_for
 
 def causeway(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=REPO, capture_output=True, text=True,

@@ -24,20 +24,13 @@ from proto.messages import GraphReport, ServiceStats
 from services.bus.credentials import Credentials, read_credentials, role_file
 from services.bus.router import free_tcp_port
 from services.bus.zenoh_transport import ZenohTransport
+from tests import waiting
 
 pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[2]
 
 
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.2):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-
+wait_for = waiting.wait_for
 
 class Watcher:
     """Subscribes to a run's graph reports and learner stats over the real router."""

@@ -7,6 +7,7 @@ and that it exports the version in use.
 """
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
@@ -28,20 +29,14 @@ from services.env_worker.core import EnvWorkerCore
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import PolicyLearnerCore
 from services.runtime.config import to_environ
+from tests import waiting
 
 pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[2]
 RUN = "late"
 
 
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.01):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := predicate():
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-
+wait_for = functools.partial(waiting.wait_for, interval=0.01)
 
 class Seen:
     """Batches (with their arrival times), worker stats and liveliness of the run."""

@@ -14,28 +14,20 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any
 
 import pytest
 
 from services.bus.router import free_tcp_port
 from services.cli import main as cli_main
 from services.ops import status
+from tests import waiting
 
 pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[2]
-T = TypeVar("T")
 
 
-def wait_for(predicate: Callable[[], T], timeout: float, what: str, interval: float = 0.2) -> T:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-
+wait_for = waiting.wait_for
 
 def start_stack(run_dir: Path, port: int) -> subprocess.Popen[str]:
     cmd = [sys.executable, "-m", "services.cli", "run", "--graph", "chain", "--num-objects", "3", "--workers", "1",

@@ -1,7 +1,7 @@
 """The whole pipeline in one process over the in-memory bus: reports arrive, bad input is survived."""
 from __future__ import annotations
 
-import time
+import functools
 
 import numpy as np
 import pytest
@@ -13,16 +13,10 @@ from proto.messages import GraphReport, ServiceStats, TransitionBatch
 from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
 from services.supervisor.inprocess import InProcessStack
+from tests import waiting
 
 
-def wait_for(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := predicate():
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
+wait_for = functools.partial(waiting.wait_for, interval=0.05)
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
