@@ -12,13 +12,7 @@ from causal.elden_graphs import attention_graphs, edge_variance, graph_variance,
 from causal.elden_trainer import ELDENTrainer, mixup
 from causal.factored import FactorLayout
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One intra-op thread: these tiny models lose most of their time to thread hand-offs otherwise."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 TINY = ELDENConfig(members=3, token_hidden=8, embed_dim=8, heads=2, predictor_hidden=8, member_batch=8)

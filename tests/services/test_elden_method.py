@@ -30,12 +30,7 @@ TINY = dict(elden_members=2, elden_token_hidden=8, elden_embed_dim=8, elden_head
             elden_member_batch=8)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
