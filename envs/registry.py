@@ -180,6 +180,13 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              "2D Minecraft (ch. 5, after Andreas et al. 2017): gather and craft up a technology tree",
              options=_GRID, tasks=dict.fromkeys(_MINECRAFT, "minecraft2d"), task_kwarg="goal",
              check=_check_by_building("minecraft2d"), **_HOUSEHOLD),
+    EnvEntry("multigrid-agents", "causeway/MultiGridAgents-v0", "envs.multigrid_agents:MultiGridAgentsEnv",
+             "MultiGrid agents drawn as RGB frames (ch. 8, FLAM): 4 agents acting independently, exact masks",
+             options=("episode_length",)),
+    EnvEntry("multigrid-agents-correlated", "causeway/MultiGridAgentsCorrelated-v0",
+             "envs.multigrid_agents:CorrelatedMultiGridAgentsEnv",
+             "MultiGrid agents, correlated variant (ch. 8.3): agent 1 repeats agent 0's action",
+             options=("episode_length",)),
 )}
 """Registered environments by name (the values ``--env`` takes)."""
 

@@ -1,0 +1,109 @@
+"""MultiGrid agents (FLAM's data, ch. 8): seeding, frames and exact masks, solid agents, the
+correlated variant, recorded videos, the registry entries and the gymnasium contract."""
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from envs import make_env
+from envs.chemical_pixels import PALETTE
+from envs.multigrid_agents import MOVES, CorrelatedMultiGridAgentsEnv, MultiGridAgentsEnv, record_videos
+
+
+def test_seeded_episodes_repeat_frame_for_frame() -> None:
+    runs = []
+    for _ in range(2):
+        env = MultiGridAgentsEnv()
+        _, info = env.reset(seed=3)
+        runs.append(np.stack([info["frame"]] + [env.step(a)[4]["frame"] for a in (0, 7, 313, 624)]))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.array_equal(MultiGridAgentsEnv().reset(seed=4)[1]["frame"], runs[0][0])
+
+
+def test_frame_masks_and_colours_follow_positions() -> None:
+    env = MultiGridAgentsEnv(cell_pixels=6)
+    obs, info = env.reset(seed=1)
+    assert info["frame"].shape == (48, 48, 3) and info["masks"].shape == (5, 48, 48)
+    np.testing.assert_array_equal(info["masks"].sum(axis=0), 1)
+    np.testing.assert_array_equal(info["frame"][info["masks"][0]], 0)
+    for i, (x, y) in enumerate(obs.reshape(-1, 2).astype(int)):
+        ys, xs = np.nonzero(info["masks"][1 + i])
+        assert len(xs) == 36 and xs.min() == 6 * x and ys.min() == 6 * y
+        assert (info["frame"][info["masks"][1 + i]] == PALETTE[i]).all()
+
+
+def test_each_agent_moves_by_its_own_digit() -> None:
+    env = MultiGridAgentsEnv()
+    env.reset(seed=0)
+    env._positions = np.array([[1, 1], [5, 5], [1, 6], [6, 1]])
+    actions = np.array([1, 2, 3, 4])
+    _, _, _, _, info = env.step(env.joint_action(actions))
+    np.testing.assert_array_equal(info["agent_actions"], actions)
+    np.testing.assert_array_equal(env._positions, np.array([[1, 1], [5, 5], [1, 6], [6, 1]]) + MOVES[actions])
+
+
+def test_walls_and_other_agents_block_moves() -> None:
+    env = MultiGridAgentsEnv(num_agents=3)
+    start = np.array([[0, 0], [2, 3], [3, 3]])
+    # agent 0 walks into the top wall, agent 1 into agent 2, agent 2 right (free)
+    moved = env.transition(start, np.array([1, 4, 4]))
+    np.testing.assert_array_equal(moved, [[0, 0], [2, 3], [4, 3]])
+    # agent 1 moves first into the cell agent 2 leaves afterwards: blocked (agents move in order)
+    assert len({tuple(p) for p in moved}) == 3
+
+
+def test_correlated_variant_copies_agent_zeros_action() -> None:
+    env = CorrelatedMultiGridAgentsEnv()
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        _, _, _, _, info = env.step(int(rng.integers(env.action_space.n)))
+        assert info["agent_actions"][1] == info["agent_actions"][0]
+    plain = MultiGridAgentsEnv().agent_actions(MultiGridAgentsEnv().joint_action(np.array([1, 2, 3, 4])))
+    np.testing.assert_array_equal(plain, [1, 2, 3, 4])
+
+
+def test_recorded_videos_are_seeded_and_consistent() -> None:
+    env = MultiGridAgentsEnv()
+    video = record_videos(env, episodes=3, steps=6, seed=5)
+    again = record_videos(MultiGridAgentsEnv(), episodes=3, steps=6, seed=5)
+    for key in video:
+        np.testing.assert_array_equal(video[key], again[key])
+    assert video["frames"].shape == (3, 7, 32, 32, 3) and video["actions"].shape == (3, 6, 4)
+    step = env.transition(video["positions"][1, 2], video["actions"][1, 2])
+    np.testing.assert_array_equal(step, video["positions"][1, 3])
+    frames, _ = env.render_positions(video["positions"][2])
+    np.testing.assert_array_equal(frames, video["frames"][2])
+    correlated = record_videos(CorrelatedMultiGridAgentsEnv(), episodes=2, steps=30, seed=0)["actions"]
+    np.testing.assert_array_equal(correlated[..., 0], correlated[..., 1])
+    assert (correlated[..., 0] != correlated[..., 2]).any()
+
+
+def test_registry_spec_and_config_round_trip() -> None:
+    env = make_env("multigrid-agents-correlated", episode_length=9, render_mode="rgb_array")
+    _, info = env.reset(seed=0)
+    np.testing.assert_array_equal(env.render(), info["frame"])
+    spec = env.unwrapped.env_spec()
+    assert spec.env_id == "multigrid-agents-correlated" and spec.action_size == 625 and spec.num_factors == 8
+    assert MultiGridAgentsEnv(**json.loads(spec.config_json)).config() == env.unwrapped.config()
+    assert make_env("multigrid-agents").unwrapped.env_spec().env_id == "multigrid-agents"
+
+
+def test_bad_options_are_refused() -> None:
+    with pytest.raises(ValueError, match="num_agents"):
+        MultiGridAgentsEnv(num_agents=11)
+    with pytest.raises(ValueError, match="correlated"):
+        MultiGridAgentsEnv(num_agents=1, correlated=True)
+    with pytest.raises(ValueError, match="action"):
+        MultiGridAgentsEnv().step(625)
+
+
+@pytest.mark.parametrize("cls", [MultiGridAgentsEnv, CorrelatedMultiGridAgentsEnv])
+def test_gymnasium_check_env(cls: type[MultiGridAgentsEnv]) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        check_env(cls(), skip_render_check=True)
