@@ -40,19 +40,22 @@ TASKS = ("match", "match-first")
 class ChemicalDistractorsEnv(ChemicalMatchEnv):
     """Observation ``[4N + C + U]``: Chemical Match's ``[4N]``, then ``cd.0 .. cd.{C-1}`` and
     ``ud.0 .. ud.{U-1}``. ``distractors`` is ``"C,U"`` (default 20 of each); ``distractor_seed``
-    fixes the projection; ``task`` is one of :data:`TASKS`. Every :class:`ChemicalMatchEnv` option
-    passes through."""
+    fixes the projection; ``task`` is one of :data:`TASKS`; ``distractor_ood = (lo, hi)`` lifts every
+    distractor value out of its training range [-1, 1] into [-hi, -lo] u [lo, hi] (out-of-distribution
+    evaluation, :class:`envs.distractors.Distractors`). Every :class:`ChemicalMatchEnv` option passes
+    through (``ood_noise_scale`` too: positions drawn at that scale)."""
 
     def __init__(self, *, distractors: str = "20,20", distractor_seed: int = 0, task: str = "match",
-                 **kwargs: Any) -> None:
+                 distractor_ood: tuple[float, float] | None = None, **kwargs: Any) -> None:
         if task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {task!r}")
         self.num_controllable, self.num_uncontrollable = parse_distractors(distractors)
         self.distractor_seed, self.task = distractor_seed, task
+        self.distractor_ood = None if distractor_ood is None else (float(distractor_ood[0]), float(distractor_ood[1]))
         super().__init__(**kwargs)
         self.task_objects = tuple(range(self.num_objects)) if task == "match" else (0,)
         self.distractors = Distractors(self.num_controllable, self.num_uncontrollable, "categorical",
-                                       int(self.action_space.n), distractor_seed)
+                                       int(self.action_space.n), distractor_seed, self.distractor_ood)
         self._match_width = 4 * self.num_objects
         self._global_graph = self.distractors.extend_graph(self._global_graph)
         self._global_graph.flags.writeable = False
@@ -137,13 +140,15 @@ class ChemicalDistractorsEnv(ChemicalMatchEnv):
     def config(self) -> dict[str, Any]:
         """Chemical Match's configuration plus the distractor counts and seed."""
         return {**super().config(), "distractors": f"{self.num_controllable},{self.num_uncontrollable}",
-                "distractor_seed": self.distractor_seed, "task": self.task}
+                "distractor_seed": self.distractor_seed, "task": self.task,
+                **({"distractor_ood": list(self.distractor_ood)} if self.distractor_ood else {})}
 
     def _make_observation_space(self) -> gym.spaces.Box:
         match = super()._make_observation_space()
         m = self.num_controllable + self.num_uncontrollable
-        return gym.spaces.Box(np.concatenate([match.low, -np.ones(m, np.float32)]),
-                              np.concatenate([match.high, np.ones(m, np.float32)]), dtype=np.float32)
+        bound = 1.0 if self.distractor_ood is None else self.distractor_ood[1]
+        return gym.spaces.Box(np.concatenate([match.low, -bound * np.ones(m, np.float32)]),
+                              np.concatenate([match.high, bound * np.ones(m, np.float32)]), dtype=np.float32)
 
     def _observation(self) -> np.ndarray:
         return np.concatenate([super()._observation(), self._values.astype(np.float32)])

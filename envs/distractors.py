@@ -16,6 +16,12 @@ So the true graph of an environment with distractors is its own graph with these
 added (:meth:`Distractors.extend_graph`), and its true minimal task abstraction never keeps one. The
 projection is fixed by ``seed`` (the same for every worker), its rows scaled so every value lies in
 [-1, 1] for actions in [-1, 1].
+
+For out-of-distribution evaluation (Fig. 4.8), ``ood_range = (lo, hi)`` lifts every value ``v`` out of
+its training range [-1, 1] to ``sign(v) (lo + (hi - lo) |v|)`` (``sign(0) = +1``): uncontrollable values
+become uniform on [-hi, -lo] u [lo, hi], controllable ones stay a function of the action alone (same
+parents) but never seen in training. The random draws are the same with and without it, so the same
+seed gives the same episode, lifted.
 """
 from __future__ import annotations
 
@@ -47,8 +53,11 @@ class Distractors:
     ``"continuous"`` vector of ``action_size`` entries in [-1, 1])."""
 
     def __init__(self, controllable: int, uncontrollable: int, action_kind: str, action_size: int,
-                 seed: int = 0) -> None:
+                 seed: int = 0, ood_range: tuple[float, float] | None = None) -> None:
+        if ood_range is not None and not 1.0 <= ood_range[0] < ood_range[1]:
+            raise ValueError(f"ood_range must be (lo, hi) with 1 <= lo < hi, got {ood_range}")
         self.controllable, self.uncontrollable = controllable, uncontrollable
+        self.ood_range = None if ood_range is None else (float(ood_range[0]), float(ood_range[1]))
         self.action_kind = action_kind
         rng = np.random.default_rng(seed)
         projection = rng.uniform(-1.0, 1.0, size=(controllable, action_size))
@@ -71,11 +80,23 @@ class Distractors:
 
     def reset(self, rng: np.random.Generator) -> np.ndarray:
         """Values at the start of an episode: controllable 0, uncontrollable fresh draws."""
-        return np.concatenate([np.zeros(self.controllable), rng.uniform(-1.0, 1.0, self.uncontrollable)])
+        return self.lift(np.concatenate([np.zeros(self.controllable), rng.uniform(-1.0, 1.0, self.uncontrollable)]))
 
     def step(self, action: np.ndarray | int, rng: np.random.Generator) -> np.ndarray:
         """Values after taking ``action``: the action's projections, then fresh uniform draws."""
-        return np.concatenate([self.project(action), rng.uniform(-1.0, 1.0, self.uncontrollable)])
+        return self.lift(np.concatenate([self.project(action), rng.uniform(-1.0, 1.0, self.uncontrollable)]))
+
+    @property
+    def bound(self) -> float:
+        """The largest absolute value a distractor takes: 1, or ``hi`` out of distribution."""
+        return 1.0 if self.ood_range is None else self.ood_range[1]
+
+    def lift(self, values: np.ndarray) -> np.ndarray:
+        """In-range ``values`` as they are, or lifted into ``ood_range`` (see the module docstring)."""
+        if self.ood_range is None:
+            return values
+        lo, hi = self.ood_range
+        return np.where(values < 0, -1.0, 1.0) * (lo + (hi - lo) * np.abs(values))
 
     def project(self, action: np.ndarray | int) -> np.ndarray:
         """``P a``: a column of ``P`` for a discrete action, the matrix product for a continuous one."""

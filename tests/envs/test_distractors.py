@@ -142,3 +142,45 @@ def test_match_first_rewards_object_0_only_and_its_minimal_abstraction_is_two_fa
     assert env_entry("chemical-distractors").kwargs(EnvOptions(task="match-first"))["task"] == "match-first"
     with pytest.raises(ValueError, match="task must be one of"):
         ChemicalDistractorsEnv(task="stack", **SMALL)
+
+
+def test_out_of_distribution_values_are_the_in_distribution_episode_lifted_out_of_range() -> None:
+    lo, hi = 1.0, 3.0
+    plain = ChemicalDistractorsEnv(**SMALL)
+    ood = ChemicalDistractorsEnv(**SMALL, distractor_ood=(lo, hi))
+    assert ood.observation_space.high[12:].tolist() == [hi] * 5 and plain.observation_space.high[12:].tolist() == [1.0] * 5
+    a, _ = plain.reset(seed=4)
+    b, _ = ood.reset(seed=4)
+    values, lifted = [], []
+    for t in range(300):
+        action = (7 * t) % plain.action_space.n
+        np.testing.assert_array_equal(a[:12], b[:12])  # the task's factors are untouched
+        values.append(a[12:]), lifted.append(b[12:])
+        a, ra, *_ = plain.step(action)
+        b, rb, *_ = ood.step(action)
+        assert ra == rb
+    values, lifted = np.concatenate(values), np.concatenate(lifted)
+    assert np.abs(values).max() <= 1.0
+    assert np.abs(lifted).min() >= lo - 1e-6 and np.abs(lifted).max() <= hi + 1e-6
+    expected = np.where(values < 0, -1.0, 1.0) * (lo + (hi - lo) * np.abs(values))
+    np.testing.assert_allclose(lifted, expected, rtol=1e-5, atol=1e-5)
+    uncontrollable = lifted.reshape(-1, 5)[:, 3:].ravel()
+    assert (uncontrollable > 0).mean() == pytest.approx(0.5, abs=0.08)  # both sides of the gap
+    assert ood.config()["distractor_ood"] == [lo, hi] and "distractor_ood" not in plain.config()
+
+
+def test_out_of_distribution_range_is_checked_and_in_distribution_behaviour_is_unchanged() -> None:
+    for bad in ((0.5, 3.0), (3.0, 1.0)):
+        with pytest.raises(ValueError):
+            Distractors(2, 2, "categorical", 4, ood_range=bad)
+    rng_a, rng_b = np.random.default_rng(9), np.random.default_rng(9)
+    d = Distractors(2, 3, "categorical", 4, seed=1)
+    assert d.bound == 1.0 and d.ood_range is None
+    first = d.reset(rng_a)
+    np.testing.assert_array_equal(first[:2], 0.0)
+    np.testing.assert_array_equal(first[2:], np.random.default_rng(9).uniform(-1.0, 1.0, 3))
+    rng_b.uniform(-1.0, 1.0, 3)  # the reset's draws
+    np.testing.assert_array_equal(d.step(3, rng_a), np.append(d.projection[:, 3], rng_b.uniform(-1.0, 1.0, 3)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(ChemicalDistractorsEnv(**SMALL, distractor_ood=(1.0, 3.0)), skip_render_check=True)
