@@ -1,11 +1,16 @@
-"""CDL update time of ``causal/cdl.py`` at an earlier git revision against the working tree's, in one run.
+"""CDL update (or CMI) time of ``causal/cdl.py`` at an earlier git revision against the working tree's, in one run.
 
 The same ``CDLTrainer`` (same parameters, optimiser, batch and seed) runs with the model code of each
 revision; timed rounds alternate between the two, so both see the same load, and the median of the
 rounds is reported with the ratio before / after. A speed change to the model is measured this way.
+``--measure cmi`` times the all-pairs CMI (eq. 3.2) of ``--transitions`` Chemical transitions instead,
+and prints the largest difference between the two revisions' CMI; ``--run-dir`` takes a trained
+run's model (its checkpointed weights and widths) rather than a fresh one, since which inputs win
+the max, and so the cost of the sparse drop-one evaluation, depends on training.
 
     python -m benchmarks.bench_cdl_revisions --before REV [--objects 10] [--batch 64] [--rounds 7]
-        [--updates 5] [--causal-every 1] [--width 64]
+        [--updates 5] [--causal-every 1] [--width 64] [--measure update|cmi] [--transitions 2000]
+        [--run-dir RUN]
 """
 from __future__ import annotations
 
@@ -23,8 +28,9 @@ import torch
 
 import causal.cdl as current
 from benchmarks.bench_cdl_update import chemical_batch
-from causal.cdl import CDLConfig
+from causal.cdl import CDLConfig, CDLModel
 from causal.cdl_trainer import CDLTrainer
+from services.supervisor.evaluation import load_model
 
 
 def module_at(revision: str) -> ModuleType:
@@ -39,6 +45,21 @@ def module_at(revision: str) -> ModuleType:
     return module
 
 
+def time_cmi(models: dict[str, CDLModel], objects: int, transitions: int, rounds: int) -> dict[str, float]:
+    """Median seconds of ``model.cmi`` on the same transitions per revision, alternating rounds."""
+    _, data = chemical_batch(objects, transitions)
+    results = {name: model.cmi(*data) for name, model in models.items()}
+    gap = (results["before"] - results["after"]).abs().max().item()
+    print(f"  largest |CMI before - CMI after|: {gap:.2e} nats (largest CMI {results['after'].abs().max().item():.3f})")
+    times: dict[str, list[float]] = {name: [] for name in models}
+    for _ in range(rounds):
+        for name, model in models.items():
+            t0 = time.perf_counter()
+            model.cmi(*data)
+            times[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--before", required=True, help="git revision of the 'before' causal/cdl.py")
@@ -48,6 +69,9 @@ def main() -> None:
     p.add_argument("--causal-every", type=int, default=1)
     p.add_argument("--rounds", type=int, default=7)
     p.add_argument("--updates", type=int, default=5, help="updates per timed round")
+    p.add_argument("--measure", choices=["update", "cmi"], default="update")
+    p.add_argument("--transitions", type=int, default=2000, help="transitions per CMI (--measure cmi)")
+    p.add_argument("--run-dir", type=Path, help="--measure cmi: that run's trained model (Chemical full)")
     args = p.parse_args()
     torch.set_num_threads(1)
     layout, batch = chemical_batch(args.objects, args.batch)
@@ -60,6 +84,9 @@ def main() -> None:
         for _ in range(3):
             trainer.update(*batch)
         trainers[name] = trainer
+    if args.measure == "cmi":
+        measure_cmi(args, {name: trainer.model for name, trainer in trainers.items()})
+        return
     times: dict[str, list[float]] = {name: [] for name in trainers}
     for _ in range(args.rounds):
         for name, trainer in trainers.items():
@@ -72,6 +99,23 @@ def main() -> None:
           f"{args.causal_every}, 1 thread, median of {args.rounds} alternating rounds of {args.updates}")
     for name, seconds in median.items():
         print(f"  {name:<6} ({args.before if name == 'before' else 'working tree'}): {seconds * 1000:8.1f} ms/update")
+    print(f"  ratio before / after: {median['before'] / median['after']:.2f}x")
+
+
+def measure_cmi(args: argparse.Namespace, models: dict[str, CDLModel]) -> None:
+    """Print the CMI timing of both revisions, on ``--run-dir``'s trained model when given."""
+    if args.run_dir is not None:
+        for name, model in models.items():
+            trained = load_model(args.run_dir)
+            trained.__class__ = type(model)
+            models[name] = trained
+        args.objects = trained.num_outputs // 3
+    median = time_cmi(models, args.objects, args.transitions, args.rounds)
+    widths = "trained model of " + str(args.run_dir) if args.run_dir else f"width {args.width}, untrained"
+    print(f"CDLModel.cmi, {args.objects} objects, {args.transitions} transitions, {widths}, 1 thread, "
+          f"median of {args.rounds} alternating rounds")
+    for name, seconds in median.items():
+        print(f"  {name:<6} ({args.before if name == 'before' else 'working tree'}): {seconds:8.3f} s/CMI")
     print(f"  ratio before / after: {median['before'] / median['after']:.2f}x")
 
 

@@ -326,22 +326,35 @@ class CDLModel(nn.Module):
 
     def nll(self, out: torch.Tensor, state: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
         """Negative log-likelihood [J, K, B] of the next state under outputs [J, K, B, O], in nats."""
+        return self._nll_of(out, *self._targets(state, next_state))
+
+    def _targets(self, state: torch.Tensor,
+                 next_state: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """What the heads are scored against, per output and sample: the next class of each
+        categorical output [J_cat, B] and the change of each continuous output [J_cont, B, max_cont]."""
+        codec = self.codec
+        cat = codec.categories(next_state).T.clamp_max(codec.max_cat - 1) if codec.cat_factors else None
+        delta = None
+        if codec.cont_factors:
+            current = codec.continuous_values(state).permute(1, 0, 2)
+            delta = codec.continuous_values(next_state).permute(1, 0, 2) - current
+        return cat, delta
+
+    def _nll_of(self, out: torch.Tensor, cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
+        """NLL [J, K, N] of outputs [J, K, N, O] against :meth:`_targets` laid out [J_*, N(, m)]."""
         result = out.new_empty(out.shape[:3])
         codec = self.codec
-        if codec.cat_factors:
+        if cat is not None:
             logits = out[codec.cat_index, :, :, : codec.max_cat]
             logits = logits.masked_fill(~self.cat_class_mask[:, None, None, :], float("-inf"))
-            target = codec.categories(next_state).T.clamp_max(codec.max_cat - 1)
             logp = torch.log_softmax(logits, dim=-1)
-            index = target[:, None, :, None].expand(-1, out.shape[1], -1, 1)
+            index = cat[:, None, :, None].expand(-1, out.shape[1], -1, 1)
             result[codec.cat_index] = -logp.gather(-1, index).squeeze(-1)
-        if codec.cont_factors:
+        if delta is not None:
             m = codec.max_cont
             raw = out[codec.cont_index]
             log_std = raw[..., m : 2 * m].clamp(self.cfg.log_std_min, self.cfg.log_std_max)
-            current = codec.continuous_values(state).permute(1, 0, 2)[:, None]
-            target = codec.continuous_values(next_state).permute(1, 0, 2)[:, None]
-            z = (target - current - raw[..., :m]) * torch.exp(-log_std)
+            z = (delta[:, None] - raw[..., :m]) * torch.exp(-log_std)
             per_dim = 0.5 * z.square() + log_std + 0.5 * LOG_2PI
             result[codec.cont_index] = (per_dim * codec.cont_valid[:, None, None, :]).sum(-1)
         return result
@@ -377,11 +390,38 @@ class CDLModel(nn.Module):
 
     def drop_one_gain(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
         """NLL(input i dropped) - NLL(full) per output j, input i and sample: ``[J, I, B]`` nats, in
-        the module's input order; one feature computation for every i (the top-2 max)."""
+        the module's input order; one feature computation for every i (the top-2 max).
+
+        Dropping an input that is the arg-max of none of a sample's F features leaves the aggregate
+        unchanged, so its gain is exactly 0; the heads run only on the (j, i, sample) rows whose
+        input wins some feature (at most min(I, F) per output and sample, often far fewer), not on
+        all J x I x B of them: at 40 objects the heads on every drop-one aggregate were most of an
+        evaluation's time (docs/results.md, "CDL at scale"). Equal to running them everywhere
+        (tests/causal/test_cdl.py)."""
         first, runner_up, is_max = max_and_runner_up(self.features(state, action))
-        full_nll = self.nll(self.predict(first), state, next_state)
-        dropped_nll = self.nll(self.predict(torch.where(is_max, runner_up, first)), state, next_state)
-        return dropped_nll - full_nll
+        cat, delta = self._targets(state, next_state)
+        full_nll = self._nll_of(self.predict(first), cat, delta)[:, 0]
+        wins = is_max.any(dim=-1)
+        gain = full_nll.new_zeros(wins.shape)
+        out_j, in_i, sample = wins.nonzero(as_tuple=True)
+        if not len(out_j):
+            return gain
+        counts = wins.flatten(1).sum(dim=1)
+        row = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
+        rows = int(counts.max())
+        dropped = torch.where(is_max[out_j, in_i, sample], runner_up[out_j, 0, sample], first[out_j, 0, sample])
+        aggregated = first.new_zeros(self.num_outputs, rows, first.shape[-1])
+        aggregated[out_j, row] = dropped
+        samples = torch.zeros(self.num_outputs, rows, dtype=torch.long, device=out_j.device)
+        samples[out_j, row] = sample
+        codec = self.codec
+        cat_rows = cat.gather(1, samples[codec.cat_index]) if cat is not None else None
+        delta_rows = None
+        if delta is not None:
+            delta_rows = delta.gather(1, samples[codec.cont_index, :, None].expand(-1, -1, delta.shape[-1]))
+        dropped_nll = self._nll_of(self.predict(aggregated[:, None]), cat_rows, delta_rows)[:, 0]
+        gain[out_j, in_i, sample] = dropped_nll[out_j, row] - full_nll[out_j, sample]
+        return gain
 
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,

@@ -90,6 +90,25 @@ def test_cmi_matches_explicit_masks() -> None:
             torch.testing.assert_close(cmi[:, i], expected, rtol=1e-4, atol=1e-5)
 
 
+def test_pointwise_cmi_matches_explicit_masks_sample_by_sample() -> None:
+    """The heads run only where the dropped input wins some feature (issue 26 item 2); every
+    per-sample gain still equals masking that input out, and the others are exactly 0."""
+    torch.manual_seed(3)
+    model = CDLModel(LAYOUT, CDLConfig(feature_hidden=16, feature_dim=3, predictor_hidden=16))
+    s, a, n = toy_batch(np.random.default_rng(3), 40)
+    pcmi = model.pointwise_cmi(s, a, n, chunk=13)
+    full = torch.ones(4, 5, dtype=torch.bool)
+    with torch.no_grad():
+        base = model.masked_nll(s, a, n, full)
+        for i in range(5):
+            mask = full.clone()
+            mask[:, i] = False
+            expected = (model.masked_nll(s, a, n, mask) - base).T
+            torch.testing.assert_close(pcmi[:, :, i], expected, rtol=1e-4, atol=1e-5)
+    # 3 features can have at most 3 arg-max inputs of 5: at least 2 gains per row are exactly 0
+    assert ((pcmi == 0).sum(dim=-1) >= 2).all() and (pcmi != 0).any()
+
+
 @pytest.mark.parametrize("action_kind", ["categorical", "continuous"])
 def test_sparse_masked_outputs_equal_masking_every_feature(action_kind: str) -> None:
     """``masked_outputs`` runs only the kept pairs' networks; it must equal the all-pairs masked max."""
