@@ -1,0 +1,221 @@
+"""FLAM, the factored latent action model (dissertation chapter 8, section 8.2), and its monolithic
+baseline of equal latent capacity.
+
+Phase 1 (eq. 8.1): an FSQ autoencoder trained on frames, then frozen (:func:`fit_autoencoder`).
+Phase 2 (eqs. 8.2-8.6), on the frozen features ``e_{1:T}`` of a clip:
+
+    xi_{1:T} = Factorizer(e_{1:T})                                  (eqs. 8.2-8.3)
+    alpha^i_t ~ q = N(M_mu, M_sigma)(IDM(xi_t^{1:K}, xi_{t+1}^i))    (eq. 8.4)
+    xi^_{t+1}^i = FDM(xi_t^{1:K}, alpha^i_t)                         (eq. 8.5)
+    e^_{t+1} = Aggregator(e_t, xi^_{t+1}^{1:K})
+    L = ||e_{t+1} - e^_{t+1}||^2 + beta_KL sum_i KL[q(alpha^i_t) || N(0, I)]   (eq. 8.6)
+
+The monolithic model (AdaWorld-like, the chapter's baseline) has no slots: one Gaussian latent of
+size ``K * d_a`` inferred from the tokens of ``e_t`` and ``e_{t+1}``, and a forward model over the
+tokens of ``e_t`` given it. Both predict ``T`` steps by feeding back their (FSQ-snapped) predictions
+with latent actions inferred from the true frames (:func:`rollout`), the chapter's protocol.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from causal.flam_nets import (FSQ, Aggregator, AttentionBlock, Factorizer, ForwardDynamics, FSQAutoencoder,
+                              InverseDynamics, TokenEmbedding, gaussian_kl)
+from causal.slots import frames_to_tensor
+from proto.settings import doc
+
+
+@dataclass(frozen=True)
+class FLAMConfig:
+    """FLAM (ch. 8): sizes, the KL weight and the optimiser of the latent action model."""
+
+    num_slots: int = doc(4, "K: slots (factors), each with its own latent action")
+    slot_dim: int = doc(64, "D: size of a slot and of the attention blocks")
+    action_dim: int = doc(8, "d_a: size of one slot's latent action (the monolithic model gets K * d_a)")
+    iterations: int = doc(3, "slot-attention iterations, each followed by temporal self-attention")
+    levels: tuple[int, ...] = doc((5, 5, 5, 5), "FSQ levels per feature channel (d_e = their count)")
+    beta_kl: float = doc(1e-3, "beta_KL of eq. 8.6")
+    lr: float = doc(1e-3, "Adam learning rate")
+    batch_size: int = doc(16, "clips per update")
+
+    def __post_init__(self) -> None:
+        if min(self.num_slots, self.slot_dim, self.action_dim, self.iterations, self.batch_size) < 1:
+            raise ValueError("FLAM sizes, iterations and batch size must be positive")
+        if not (self.lr > 0 and self.beta_kl >= 0) or self.slot_dim % 4:
+            raise ValueError("lr must be > 0, beta_kl >= 0 and slot_dim a multiple of 4 (attention heads)")
+
+
+class LAMOutput(NamedTuple):
+    predicted: torch.Tensor
+    """e^_{2:T} ``[B, T-1, n, d_e]``."""
+    mu: torch.Tensor
+    log_sigma: torch.Tensor
+    """Posterior of the latent actions: FLAM ``[B, T-1, K, d_a]``, monolithic ``[B, T-1, 1, K d_a]``."""
+    attention: torch.Tensor | None
+    """FLAM's slot attention ``[B, T, K, n]`` (None for the monolithic model)."""
+
+
+class LatentActionModel(Protocol):
+    def forward(self, features: torch.Tensor, sample: bool = True) -> LAMOutput: ...
+    def infer(self, features: torch.Tensor) -> torch.Tensor: ...
+    def step(self, history: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor: ...
+
+
+def sample_latent(mu: torch.Tensor, log_sigma: torch.Tensor, sample: bool) -> torch.Tensor:
+    return mu + torch.exp(log_sigma) * torch.randn_like(mu) if sample else mu
+
+
+class FLAM(nn.Module):
+    """Factorizer, per-slot IDM and FDM, and aggregator, on frozen feature tokens ``[B, T, n, d_e]``."""
+
+    def __init__(self, config: FLAMConfig, num_tokens: int) -> None:
+        super().__init__()
+        d_e, d = len(config.levels), config.slot_dim
+        self.config = config
+        self.factorizer = Factorizer(d_e, num_tokens, config.num_slots, d, config.iterations)
+        self.idm = InverseDynamics(d, config.action_dim)
+        self.fdm = ForwardDynamics(d, config.action_dim)
+        self.aggregator = Aggregator(d_e, num_tokens, d)
+
+    def forward(self, features: torch.Tensor, sample: bool = True) -> LAMOutput:
+        slots, attention = self.factorizer(features)
+        b, t, k, d = slots.shape
+        current, nxt = slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d)
+        mu, log_sigma = self.idm(current, nxt)
+        predicted_slots = self.fdm(current, sample_latent(mu, log_sigma, sample))
+        predicted = self.aggregator(features[:, :-1].flatten(0, 1), predicted_slots)
+        shape = (b, t - 1)
+        return LAMOutput(predicted.view(shape + predicted.shape[1:]), mu.view(shape + mu.shape[1:]),
+                         log_sigma.view(shape + mu.shape[1:]), attention)
+
+    def infer(self, features: torch.Tensor) -> torch.Tensor:
+        """Posterior means of the latent actions ``[B, T-1, K, d_a]`` of a clip's features."""
+        slots, _ = self.factorizer(features)
+        k, d = slots.shape[2:]
+        mu, _ = self.idm(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
+        return mu.view(slots.shape[:1] + (-1,) + mu.shape[1:])
+
+    def step(self, history: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """e^_{t+1} ``[B, n, d_e]`` from the features so far ``[B, t, n, d_e]`` and alpha_t ``[B, K, d_a]``."""
+        slots, _ = self.factorizer(history)
+        return self.aggregator(history[:, -1], self.fdm(slots[:, -1], alpha))
+
+
+class MonolithicLAM(nn.Module):
+    """One latent action of size ``K * d_a`` for the whole scene (AdaWorld-like): the IDM reads the
+    tokens of ``e_t`` and ``e_{t+1}`` and pools them with a learned query; the FDM adds the action to
+    every token of ``e_t`` and runs self-attention over the tokens."""
+
+    def __init__(self, config: FLAMConfig, num_tokens: int) -> None:
+        super().__init__()
+        d_e, d, size = len(config.levels), config.slot_dim, config.num_slots * config.action_dim
+        self.config = config
+        self.embed_pair = TokenEmbedding(2 * d_e, num_tokens, d)
+        self.idm_tokens, self.idm_pool = AttentionBlock(d), AttentionBlock(d)
+        self.query = nn.Parameter(torch.randn(1, 1, d) * d ** -0.5)
+        self.to_mu, self.to_log_sigma = nn.Linear(d, size), nn.Linear(d, size)
+        self.embed = TokenEmbedding(d_e, num_tokens, d)
+        self.action_in = nn.Linear(size, d)
+        self.fdm_tokens, self.fdm_out = AttentionBlock(d), AttentionBlock(d)
+        self.out = nn.Linear(d, d_e)
+
+    def posterior(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pair = self.embed_pair(torch.cat([current, nxt], -1))
+        tokens = self.idm_tokens(pair, pair)
+        pooled = self.idm_pool(self.query.expand(len(tokens), 1, -1), tokens)
+        return self.to_mu(pooled), self.to_log_sigma(pooled).clamp(-8.0, 4.0)
+
+    def predict(self, current: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        tokens = self.embed(current) + self.action_in(alpha)
+        tokens = self.fdm_tokens(tokens, tokens)
+        return current + self.out(self.fdm_out(tokens, tokens))
+
+    def forward(self, features: torch.Tensor, sample: bool = True) -> LAMOutput:
+        b, t = features.shape[:2]
+        current, nxt = features[:, :-1].flatten(0, 1), features[:, 1:].flatten(0, 1)
+        mu, log_sigma = self.posterior(current, nxt)
+        predicted = self.predict(current, sample_latent(mu, log_sigma, sample))
+        shape = (b, t - 1)
+        return LAMOutput(predicted.view(shape + predicted.shape[1:]), mu.view(shape + mu.shape[1:]),
+                         log_sigma.view(shape + mu.shape[1:]), None)
+
+    def infer(self, features: torch.Tensor) -> torch.Tensor:
+        mu, _ = self.posterior(features[:, :-1].flatten(0, 1), features[:, 1:].flatten(0, 1))
+        return mu.view(features.shape[:1] + (-1,) + mu.shape[1:])
+
+    def step(self, history: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        return self.predict(history[:, -1], alpha)
+
+
+def lam_loss(features: torch.Tensor, out: LAMOutput, beta_kl: float) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 8.6 per transition, averaged over transitions: the squared error of the next features
+    (summed over tokens and channels) plus beta_KL times the KL summed over slots."""
+    prediction = (out.predicted - features[:, 1:]).pow(2).flatten(2).sum(-1).mean()
+    kl = gaussian_kl(out.mu, out.log_sigma).sum(-1).mean()
+    return prediction + beta_kl * kl, {"prediction_sse": float(prediction.detach()), "kl": float(kl.detach())}
+
+
+class LAMTrainer:
+    """Adam on eq. 8.6 for FLAM or the monolithic model, on clips of frozen features."""
+
+    def __init__(self, model: nn.Module, seed: int = 0) -> None:
+        self.model, self.config = model, model.config
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=self.config.lr)
+        torch.manual_seed(seed)
+        self.updates = 0
+
+    def update(self, features: torch.Tensor) -> dict[str, float]:
+        """One step on a batch of clips ``[B, T, n, d_e]``; the loss terms."""
+        self.model.train()
+        loss, terms = lam_loss(features, self.model(features), self.config.beta_kl)
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+        self.optimizer.step()
+        self.updates += 1
+        return {"loss": float(loss.detach()), **terms}
+
+
+def fit_autoencoder(autoencoder: FSQAutoencoder, frames: torch.Tensor, updates: int, batch_size: int = 32,
+                    lr: float = 2e-3, seed: int = 0) -> float:
+    """Eq. 8.1 on frames (uint8 ``[N, H, W, 3]``), then freeze; the last reconstruction loss."""
+    generator = torch.Generator().manual_seed(seed)
+    optimizer = torch.optim.Adam(autoencoder.parameters(), lr=lr)
+    loss = torch.tensor(float("nan"))
+    for _ in range(updates):
+        images = frames_to_tensor(frames[torch.randint(len(frames), (batch_size,), generator=generator)])
+        loss = F.mse_loss(autoencoder(images), images)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    autoencoder.requires_grad_(False)
+    return float(loss.detach())
+
+
+@torch.no_grad()
+def encode_clips(autoencoder: FSQAutoencoder, frames: torch.Tensor) -> torch.Tensor:
+    """Frozen features ``[B, T, n, d_e]`` of clips of frames (uint8 ``[B, T, H, W, 3]``)."""
+    tokens = autoencoder.encode(frames_to_tensor(frames.flatten(0, 1)))
+    return tokens.view(frames.shape[:2] + tokens.shape[1:])
+
+
+@torch.no_grad()
+def rollout(model: LatentActionModel, features: torch.Tensor, fsq: FSQ) -> torch.Tensor:
+    """``T - 1`` predicted features ``[B, T-1, n, d_e]`` of clips ``[B, T, n, d_e]``: latent actions
+    inferred from the true clip, each prediction FSQ-snapped and fed back (autoregressive)."""
+    alphas = model.infer(features)
+    history = features[:, :1]
+    for t in range(alphas.shape[1]):
+        history = torch.cat([history, fsq.snap(model.step(history, alphas[:, t]))[:, None]], dim=1)
+    return history[:, 1:]
+
+
+def psnr(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """PSNR in dB of images in [0, 1] per clip ``[B, T, ...]`` (MSE over the clip, floored at 1e-10)."""
+    mse = (predicted.clamp(0, 1) - target).pow(2).flatten(1).mean(1)
+    return 10 * torch.log10(1.0 / mse.clamp_min(1e-10))

@@ -1,0 +1,172 @@
+"""FLAM's networks (dissertation section 8.2): the FSQ autoencoder, the factorizer, the per-slot inverse
+and forward dynamics and the aggregator. Every network is vectorised over slots (the slot axis is a
+batch axis); :mod:`causal.flam` puts them together with the loss of eq. 8.6.
+
+Shapes: ``B`` clips of ``T`` frames, ``n`` feature tokens of ``d_e`` channels, ``K`` slots of ``D``
+channels, latent actions of ``d_a`` channels per slot.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from causal.slots import FrameAutoencoder
+
+
+class FSQ(nn.Module):
+    """Finite scalar quantisation (Mentzer et al. 2024): channel ``c`` is bounded to ``L_c`` levels by
+    ``tanh`` and rounded with a straight-through gradient; values are scaled to ``[-1, 1]``."""
+
+    def __init__(self, levels: tuple[int, ...]) -> None:
+        super().__init__()
+        if not levels or any(level < 2 or level % 2 == 0 for level in levels):
+            raise ValueError(f"FSQ levels must be odd and >= 3, got {levels}")
+        self.levels = levels
+        self.register_buffer("half_width", (torch.tensor(levels, dtype=torch.float32) - 1) / 2, persistent=False)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        """Quantised ``z`` (channels last): ``round(tanh(z) * h) / h`` with ``h = (L - 1) / 2``."""
+        bounded = torch.tanh(z) * self.half_width
+        return (bounded + (torch.round(bounded) - bounded).detach()) / self.half_width
+
+    def snap(self, values: torch.Tensor) -> torch.Tensor:
+        """The grid point nearest to ``values`` already in ``[-1, 1]`` (a prediction fed back in a rollout)."""
+        return torch.round(values.clamp(-1.0, 1.0) * self.half_width) / self.half_width
+
+
+class FSQAutoencoder(nn.Module):
+    """Encoder, FSQ and decoder of eq. 8.1: images ``[B, 3, H, W]`` <-> tokens ``e_q [B, n, d_e]``.
+
+    The convolutional stacks are Dyn-O's :class:`causal.slots.FrameAutoencoder` (stride 4)."""
+
+    def __init__(self, levels: tuple[int, ...], width: int = 32) -> None:
+        super().__init__()
+        self.fsq = FSQ(levels)
+        self.autoencoder = FrameAutoencoder(len(levels), width)
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        z = self.autoencoder.encoder(images)
+        return self.fsq(z.flatten(2).transpose(1, 2))
+
+    def decode(self, tokens: torch.Tensor, grid: int) -> torch.Tensor:
+        return self.autoencoder.decoder(tokens.transpose(1, 2).reshape(len(tokens), -1, grid, grid))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.decode(self.encode(images), images.shape[-1] // 4)
+
+
+class AttentionBlock(nn.Module):
+    """Pre-norm attention from ``query [M, q, D]`` to ``key [M, k, D]`` with residual, then an MLP."""
+
+    def __init__(self, dim: int, heads: int = 4) -> None:
+        super().__init__()
+        self.norm_query, self.norm_key = nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.attention = nn.MultiheadAttention(dim, heads, batch_first=True)
+        self.mlp = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, dim))
+
+    def forward(self, query: torch.Tensor, key: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        k = self.norm_key(key)
+        x = query + self.attention(self.norm_query(query), k, k, attn_mask=mask, need_weights=False)[0]
+        return x + self.mlp(x)
+
+
+class TokenEmbedding(nn.Module):
+    """Feature tokens ``[..., n, d_e]`` -> ``[..., n, D]`` with a learned position per token."""
+
+    def __init__(self, feature_dim: int, num_tokens: int, dim: int) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(feature_dim, dim), nn.ReLU(), nn.Linear(dim, dim))
+        self.position = nn.Parameter(torch.randn(num_tokens, dim) * 0.02)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.mlp(features) + self.position
+
+
+class Factorizer(nn.Module):
+    """Eqs. 8.2-8.3: slot attention over each frame's tokens from K learned initial slots, each
+    iteration followed by causal temporal self-attention of every slot over its own past values."""
+
+    def __init__(self, feature_dim: int, num_tokens: int, num_slots: int, dim: int, iterations: int) -> None:
+        super().__init__()
+        self.iterations, self.scale = iterations, dim ** -0.5
+        self.embed = TokenEmbedding(feature_dim, num_tokens, dim)
+        self.initial = nn.Parameter(torch.randn(num_slots, dim) * dim ** -0.5)
+        self.norm_tokens, self.norm_slots = nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.to_q, self.to_k, self.to_v = (nn.Linear(dim, dim, bias=False) for _ in range(3))
+        self.gru = nn.GRUCell(dim, dim)
+        self.mlp = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, dim))
+        self.temporal = AttentionBlock(dim)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Slots ``[B, T, K, D]`` of features ``[B, T, n, d_e]`` and the last slot attention
+        ``[B, T, K, n]`` (normalised over slots: each token's share per slot)."""
+        b, t, n, _ = features.shape
+        tokens = self.norm_tokens(self.embed(features)).flatten(0, 1)
+        keys, values = self.to_k(tokens), self.to_v(tokens)
+        k, d = self.initial.shape
+        slots = self.initial.expand(b * t, k, d)
+        causal = torch.ones(t, t, dtype=torch.bool).triu(1)
+        for _ in range(self.iterations):
+            logits = torch.einsum("mkd,mnd->mkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
+            attention = logits.softmax(dim=1)
+            updates = (attention / (attention.sum(dim=2, keepdim=True) + 1e-8)) @ values
+            slots = self.gru(updates.reshape(-1, d), slots.reshape(-1, d)).view(b * t, k, d)
+            slots = slots + self.mlp(slots)
+            per_slot = slots.view(b, t, k, d).transpose(1, 2).reshape(b * k, t, d)
+            per_slot = self.temporal(per_slot, per_slot, causal)
+            slots = per_slot.view(b, k, t, d).transpose(1, 2).reshape(b * t, k, d)
+        return slots.view(b, t, k, d), attention.view(b, t, k, n)
+
+
+def per_slot_cross(block: AttentionBlock, query: torch.Tensor, keys: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """Each slot's query ``[M, K, D]`` attends only to its own keys (each ``[M, K, D]``): ``[M, K, D]``."""
+    m, k, d = query.shape
+    return block(query.reshape(m * k, 1, d), torch.stack(keys, dim=2).reshape(m * k, len(keys), d)).view(m, k, d)
+
+
+class InverseDynamics(nn.Module):
+    """Eq. 8.4: alpha^i from all slots at t and slot i at t+1, as a Gaussian ``(mu, log_sigma)``.
+
+    Spatial self-attention across the slots at t, then slot i's next value cross-attends to
+    ``[its spatial summary, its next value]``; M_mu and M_sigma project to ``d_a`` channels."""
+
+    def __init__(self, dim: int, action_dim: int) -> None:
+        super().__init__()
+        self.spatial, self.temporal = AttentionBlock(dim), AttentionBlock(dim)
+        self.to_mu, self.to_log_sigma = nn.Linear(dim, action_dim), nn.Linear(dim, action_dim)
+
+    def forward(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        summary = self.spatial(current, current)
+        alpha = per_slot_cross(self.temporal, nxt, (summary, nxt))
+        return self.to_mu(alpha), self.to_log_sigma(alpha).clamp(-8.0, 4.0)
+
+
+class ForwardDynamics(nn.Module):
+    """Eq. 8.5: slot i's next value from all slots at t and its own latent action alpha^i only."""
+
+    def __init__(self, dim: int, action_dim: int) -> None:
+        super().__init__()
+        self.spatial, self.temporal = AttentionBlock(dim), AttentionBlock(dim)
+        self.action_in = nn.Linear(action_dim, dim)
+
+    def forward(self, current: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        summary = self.spatial(current, current)
+        return per_slot_cross(self.temporal, current, (summary, self.action_in(alpha)))
+
+
+class Aggregator(nn.Module):
+    """e^_{t+1} = e_t + Out(Cross-Attn(query = e_t, key = xi^_{t+1})): features from predicted slots."""
+
+    def __init__(self, feature_dim: int, num_tokens: int, dim: int) -> None:
+        super().__init__()
+        self.embed = TokenEmbedding(feature_dim, num_tokens, dim)
+        self.block = AttentionBlock(dim)
+        self.out = nn.Linear(dim, feature_dim)
+
+    def forward(self, features: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        return features + self.out(self.block(self.embed(features), slots))
+
+
+def gaussian_kl(mu: torch.Tensor, log_sigma: torch.Tensor) -> torch.Tensor:
+    """KL[N(mu, sigma^2) || N(0, I)] summed over the last axis (closed form)."""
+    return 0.5 * (mu.pow(2) + torch.exp(2 * log_sigma) - 1.0 - 2 * log_sigma).sum(-1)

@@ -1,0 +1,152 @@
+"""FLAM (ch. 8): FSQ round trips and straight-through gradients, the KL term against the closed form,
+slot-wise masking of the per-slot dynamics, causal temporal attention, shapes, seeding and a short
+fit of eq. 8.6."""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.distributions import Normal, kl_divergence
+
+from causal.flam import FLAM, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, lam_loss, psnr, rollout
+from causal.flam_nets import FSQ, FSQAutoencoder, gaussian_kl
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+CONFIG = FLAMConfig(num_slots=3, slot_dim=16, action_dim=4, iterations=2, levels=(5, 3, 7), batch_size=4)
+TOKENS = 16
+
+
+def _features(b: int = 2, t: int = 4, seed: int = 0) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    return FSQ(CONFIG.levels)(torch.randn(b, t, TOKENS, len(CONFIG.levels), generator=generator))
+
+
+def _flam(seed: int = 0) -> FLAM:
+    torch.manual_seed(seed)
+    return FLAM(CONFIG, TOKENS).eval()
+
+
+def test_fsq_values_lie_on_the_level_grid_and_snap_is_idempotent() -> None:
+    fsq = FSQ((5, 3, 7))
+    q = fsq(torch.randn(500, 3) * 3)
+    scaled = q * torch.tensor([2.0, 1.0, 3.0])
+    torch.testing.assert_close(scaled, scaled.round())
+    assert q.abs().max() <= 1.0
+    for c, level in enumerate((5, 3, 7)):
+        assert len(torch.unique(scaled[:, c])) == level
+    torch.testing.assert_close(fsq.snap(q), q)
+    torch.testing.assert_close(fsq.snap(q + 0.05), q)
+
+
+def test_fsq_gradient_is_straight_through_the_rounding() -> None:
+    fsq = FSQ((5, 5))
+    z = torch.randn(64, 2, requires_grad=True)
+    fsq(z).sum().backward()
+    torch.testing.assert_close(z.grad, 1 - torch.tanh(z.detach()) ** 2)
+    with pytest.raises(ValueError, match="odd"):
+        FSQ((4, 5))
+
+
+def test_autoencoder_tokens_are_quantised() -> None:
+    torch.manual_seed(0)
+    autoencoder = FSQAutoencoder((5, 5, 5, 5), width=8)
+    frames = torch.randint(0, 256, (2, 3, 16, 16, 3), dtype=torch.uint8)
+    tokens = encode_clips(autoencoder, frames)
+    assert tokens.shape == (2, 3, 16, 4)
+    torch.testing.assert_close(tokens * 2, (tokens * 2).round())
+    assert autoencoder.decode(tokens[0], 4).shape == (3, 3, 16, 16)
+
+
+def test_kl_matches_the_closed_form_and_sums_over_slots_in_the_loss() -> None:
+    generator = torch.Generator().manual_seed(1)
+    mu, log_sigma = torch.randn(6, 3, 4, generator=generator), torch.randn(6, 3, 4, generator=generator) * 0.5
+    expected = kl_divergence(Normal(mu, log_sigma.exp()), Normal(0.0, 1.0)).sum(-1)
+    torch.testing.assert_close(gaussian_kl(mu, log_sigma), expected)
+    assert gaussian_kl(torch.zeros(2, 4), torch.zeros(2, 4)).abs().max() == 0
+    features = _features(b=2, t=4)
+    out = _flam()(features)
+    _, terms = lam_loss(features, out, beta_kl=0.1)
+    assert terms["kl"] == pytest.approx(float(gaussian_kl(out.mu, out.log_sigma).sum(-1).mean().detach()), rel=1e-5)
+    total, _ = lam_loss(features, out, beta_kl=0.0)
+    assert float(total.detach()) == pytest.approx(terms["prediction_sse"], rel=1e-5)
+
+
+def test_latent_action_of_slot_k_only_moves_slot_k() -> None:
+    model = _flam()
+    current = torch.randn(5, CONFIG.num_slots, CONFIG.slot_dim)
+    alpha = torch.randn(5, CONFIG.num_slots, CONFIG.action_dim, requires_grad=True)
+    predicted = model.fdm(current, alpha)
+    for i in range(CONFIG.num_slots):
+        (grad,) = torch.autograd.grad(predicted[:, i].sum(), alpha, retain_graph=True)
+        per_slot = grad.abs().sum(dim=(0, 2))
+        assert per_slot[i] > 1e-4
+        assert torch.all(per_slot[torch.arange(CONFIG.num_slots) != i] == 0)
+    bumped = alpha.detach().clone()
+    bumped[:, 1] += 1.0
+    changed = (model.fdm(current, bumped) - predicted.detach()).abs().sum(dim=(0, 2))
+    assert changed[1] > 1e-3 and changed[0] == 0 and changed[2] == 0
+
+
+def test_slot_is_latent_action_reads_only_its_own_next_value() -> None:
+    model = _flam()
+    current = torch.randn(5, CONFIG.num_slots, CONFIG.slot_dim)
+    nxt = torch.randn(5, CONFIG.num_slots, CONFIG.slot_dim)
+    mu, _ = model.idm(current, nxt)
+    bumped = nxt.clone()
+    bumped[:, 2] += 1.0
+    changed = (model.idm(current, bumped)[0] - mu).abs().sum(dim=(0, 2))
+    assert changed[2] > 1e-3 and changed[0] == 0 and changed[1] == 0
+    moved_current = current.clone()
+    moved_current[:, 0] += 1.0
+    assert ((model.idm(moved_current, nxt)[0] - mu).abs().sum(dim=(0, 2)) > 0).all()
+
+
+def test_temporal_attention_is_causal() -> None:
+    model = _flam()
+    features = _features(b=1, t=5)
+    slots, attention = model.factorizer(features)
+    changed = features.clone()
+    changed[:, 3] = -changed[:, 3]
+    slots_changed, _ = model.factorizer(changed)
+    torch.testing.assert_close(slots_changed[:, :3], slots[:, :3])
+    assert (slots_changed[:, 3:] - slots[:, 3:]).abs().max() > 1e-4
+    torch.testing.assert_close(attention.sum(dim=2), torch.ones(1, 5, TOKENS))
+
+
+@pytest.mark.parametrize("cls", [FLAM, MonolithicLAM])
+def test_shapes_rollout_and_seeded_determinism(cls: type) -> None:
+    torch.manual_seed(3)
+    model = cls(CONFIG, TOKENS).eval()
+    features = _features(b=2, t=5)
+    out = model(features, sample=False)
+    assert out.predicted.shape == (2, 4, TOKENS, 3)
+    alphas = model.infer(features)
+    latent = CONFIG.num_slots * CONFIG.action_dim
+    assert alphas.shape[:2] == (2, 4) and alphas[0, 0].numel() == latent
+    predicted = rollout(model, features, FSQ(CONFIG.levels))
+    assert predicted.shape == (2, 4, TOKENS, 3)
+    on_grid = predicted * torch.tensor([2.0, 1.0, 3.0])
+    torch.testing.assert_close(on_grid, on_grid.round())
+    torch.manual_seed(3)
+    again = cls(CONFIG, TOKENS).eval()
+    torch.testing.assert_close(rollout(again, features, FSQ(CONFIG.levels)), predicted)
+
+
+def test_a_short_fit_of_eq_8_6_lowers_the_loss() -> None:
+    model = _flam().train()
+    trainer = LAMTrainer(model, seed=0)
+    features = _features(b=4, t=3, seed=5)
+    first = trainer.update(features)["loss"]
+    for _ in range(40):
+        last = trainer.update(features)["loss"]
+    assert last < 0.7 * first
+
+
+def test_psnr_of_a_known_error_and_config_checks() -> None:
+    target = torch.zeros(2, 3, 3, 4, 4)
+    assert psnr(target + 0.1, target).tolist() == pytest.approx([20.0, 20.0], rel=1e-5)
+    assert psnr(target, target).tolist() == pytest.approx([100.0, 100.0])
+    with pytest.raises(ValueError):
+        FLAMConfig(slot_dim=30)
+    with pytest.raises(ValueError):
+        FLAMConfig(beta_kl=-1.0)
