@@ -24,6 +24,7 @@ from torch import nn
 from causal.abstraction import Abstraction, cdl_abstraction
 from causal.edge_tests import EdgeEstimate
 from causal.factored import FactorLayout
+from proto.messages import EnvSpec
 
 
 class DynamicsTrainer(Protocol):
@@ -108,6 +109,13 @@ class RewardGraphEstimator(Protocol):
     def threshold(self, model: nn.Module) -> float: ...
 
 
+class SlotScorer(Protocol):
+    """Scores of a method's object slots (chapter 7's representation): the run summary's ``slots`` block."""
+
+    def scores(self, model: nn.Module, spec: EnvSpec) -> dict[str, Any]:
+        """``{"fg_ari": ..., ...}`` of the final ``model`` on frames of the run's environment ``spec``."""
+
+
 TaskAbstraction = Callable[[np.ndarray], Abstraction]
 """A global graph (with self-edges) -> which factors a policy sees (``Abstraction.kept``)."""
 
@@ -142,6 +150,10 @@ class Method:
     intrinsic: tuple[str, ...] = ()
     """Intrinsic rewards (``causal.intrinsic.REWARDS``) that read this method's model."""
     rollout_step: RolloutStep | None = None
+    slots: SlotScorer | None = None
+    """Object slots learned from frames (Dyn-O): the summary's ``slots`` block, from the final model."""
+    envs: tuple[str, ...] = ()
+    """Environments the method runs on (empty: any); ``causeway run`` refuses others before starting."""
     resumable: tuple[str, ...] = ()
     """Config fields a resumed learner may change (left out of the checkpoint fingerprint)."""
     prioritised: bool = False

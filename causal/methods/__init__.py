@@ -24,6 +24,7 @@ METHODS: dict[str, str] = {
     "monolithic": "causal.methods.dense:MONOLITHIC",
     "cbm": "causal.methods.cbm",
     "skild": "causal.methods.skild",
+    "dyno": "causal.methods.dyno",
 }
 """Registered methods: name -> ``module`` defining ``METHOD`` (or ``module:NAME``)."""
 

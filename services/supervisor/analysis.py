@@ -18,6 +18,7 @@ from causal.methods import get_method
 from envs.registry import env_entry
 from proto.messages import GraphReport, LocalGraphReport
 from services.policy_learner.config import PolicyLearnerConfig
+from services.runtime.checkpoint import load_checkpoint
 from services.supervisor import evaluation
 from services.supervisor import report as reporting
 from services.supervisor import report_local as local_report
@@ -60,6 +61,8 @@ def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) ->
         local_report.plot_curve(record.local_history, run_dir / "local_learning_curve.png")
     if final_local is not None:
         add_final_local_graph(content, final_local, run_dir)
+    if get_method(cfg.method).slots is not None and cfg.evaluate and not record.failure:
+        content["slots"] = _slot_scores(cfg, run_dir, stream)
     if ok and report is not None and evaluation.applies(env_entry(cfg.env), get_method(cfg.method)):
         content["evaluation"] = _evaluate(cfg, run_dir, report, stream)
     if report is not None:
@@ -90,6 +93,21 @@ def _final_reports(cfg: RunConfig, run_dir: Path, stream: TextIO) -> tuple[Graph
     if local is not None:
         stream.write(f"final local graphs: {local.num_transitions:,} transitions, {local_report.score_line(local)}\n")
     return final, local
+
+
+def _slot_scores(cfg: RunConfig, run_dir: Path, stream: TextIO) -> dict[str, Any]:
+    """The method's slot scores (Dyn-O: FG-ARI) of the learner's final model; an error is recorded."""
+    stream.write("scoring the final model's slots (FG-ARI, no masks) ...\n")
+    try:
+        saved = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
+        if saved is None:
+            return {"error": "no dynamics-learner checkpoint"}
+        model = evaluation.model_from_checkpoint(saved)
+        return {"updates": int(saved["trainer"]["updates"]),
+                **get_method(cfg.method).slots.scores(model, run_env_spec(cfg))}
+    except Exception as exc:  # noqa: BLE001 - reported in the summary
+        log.exception("slot scoring failed")
+        return {"error": f"{type(exc).__name__}: {exc}"}
 
 
 def _evaluate(cfg: RunConfig, run_dir: Path, report: GraphReport, stream: TextIO) -> dict[str, Any]:
@@ -135,6 +153,8 @@ def print_summary(content: dict) -> None:
     if "local_graph" in content:
         local = content["local_graph"]
         shown["local_graph"] = {k: local.get(k) for k in ("evaluation", "num_transitions", "roc_auc", "pr_auc", "best_f1")}
+    if "slots" in content:
+        shown["slots"] = {k: content["slots"].get(k) for k in ("fg_ari", "updates", "error") if k in content["slots"]}
     if "reward_graph" in content:
         shown["reward_graph"] = {k: content["reward_graph"].get(k) for k in ("learned_parents", "accuracy", "f1")}
         shown["task_abstraction"] = {k: content["task_abstraction"].get(k) for k in ("kept", "accuracy")}

@@ -53,6 +53,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
         cfg = dataclasses.replace(cfg, env=entry.tasks[task])
         entry = _entry(cfg.env)
     check_options(cfg.env, cfg.env_options)
+    if method.envs and cfg.env not in method.envs:
+        raise ValueError(f"method {cfg.method!r} runs on {', '.join(method.envs)} only, not {cfg.env!r}")
     _check_policy(cfg, method.intrinsic)
     if cfg.target_f1 and method.global_graph is None:
         raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
