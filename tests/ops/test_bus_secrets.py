@@ -59,3 +59,16 @@ def test_a_router_started_from_it_admits_roles_only(tmp_path: Path) -> None:
             assert received
     finally:
         router.close()
+
+
+def test_compose_mode_keeps_the_directory_private_and_the_files_readable_in_containers(tmp_path: Path) -> None:
+    """Compose bind-mounts a secret with its host mode; the directory is what keeps it private."""
+    out = tmp_path / "bus"
+    assert cli_main(["bus-secrets", "--run", "compose", "--out", str(out), "--file-mode", "644"]) == 0
+    secrets = out / "secrets"
+    assert secrets.stat().st_mode & 0o777 == 0o700
+    assert {f.stat().st_mode & 0o777 for f in secrets.iterdir()} == {0o644}
+    for writable in ("666", "755", "600x"):
+        with pytest.raises(SystemExit) as refused:
+            cli_main(["bus-secrets", "--run", "compose", "--out", str(tmp_path / writable), "--file-mode", writable])
+        assert refused.value.code == 2 and not (tmp_path / writable).exists()
