@@ -1,0 +1,236 @@
+"""Table 7.2 analogue (chapter 7, Dyn-O): 20-step rollout PSNR and SSIM on unseen seeds, the slot
+world model (eq. 7.2) against a monolithic world model of matched parameter count.
+
+Data: episodes of ``chemical-pixels`` (4 objects, 32x32) under uniformly random actions, each 1 + 20
+frames. Chemical redraws every position i.i.d. each step, which no model can predict, so each
+episode keeps its first layout and only the colours evolve (the action sets one object's colour, its
+descendants in the chain are re-drawn from the CPT): the rollouts test the colour dynamics. Training
+episodes come from env seed ``seed``, evaluation episodes from ``seed + 10_000`` (unseen layouts and
+colour sequences).
+
+Per seed: the frame autoencoder and the annealed slot model are trained as in Table 7.1's analogue
+(``benchmarks.slots_table``), then frozen; the slots of every frame are computed once and put in one
+order over each episode (:func:`causal.slot_world_model.align_slots`). Then, from the same batches:
+
+- ``slot``: :class:`~causal.slot_world_model.SlotWorldModel` on the slots, decoded by the slot decoder
+  and the frozen frame decoder;
+- ``monolithic``: :class:`~causal.slot_world_model.MonolithicWorldModel` on the frozen encoder's whole
+  feature map (one latent per frame), decoded by the frozen frame decoder, its width chosen so its
+  parameter count matches the slot model's.
+
+Both are trained teacher-forced on eq. 7.2 and scored open loop: from the first frame's latent under
+the episode's 20 actions, each predicted frame against the true one. Also reported: the decoder
+ceilings (the true step-20 latents decoded) and ``copy`` (the first frame repeated: no dynamics).
+Budgets are update counts; one torch thread.
+
+    python -m benchmarks.dyno_world_model [--seeds 0] [--wm-updates 3000] [--out benchmark-results/dyno/world_model.json]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from benchmarks.slots_table import Budget as SlotsBudget
+from benchmarks.slots_table import train_variant
+from causal.slot_world_model import (
+    MonolithicWorldModel,
+    SlotWorldModel,
+    WorldModelConfig,
+    align_slots,
+    monolithic_width,
+    parameter_count,
+    psnr,
+    ssim,
+    summary_of,
+    world_model_loss,
+)
+from causal.slots import SlotConfig, SlotModel, fit_autoencoder, frames_to_tensor
+from envs.chemical_pixels import ChemicalPixelsEnv
+
+EVAL_SEED_OFFSET = 10_000
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    num_objects: int = 4
+    frame_size: int = 32
+    horizon: int = 20
+    train_episodes: int = 300
+    eval_episodes: int = 100
+    ae_updates: int = 300
+    slot_updates: int = 1500
+    wm_updates: int = 3000
+    wm_batch: int = 16
+    wm_hidden: int = 64
+    log_every: int = 500
+
+
+@dataclasses.dataclass
+class Episodes:
+    frames: torch.Tensor
+    """uint8 ``[E, T + 1, H, W, 3]``"""
+    labels: torch.Tensor
+    """int ``[E, T + 1, H, W]``"""
+    actions: torch.Tensor
+    """long ``[E, T]``"""
+
+
+def episodes_of(env: ChemicalPixelsEnv, seed: int, count: int, horizon: int) -> Episodes:
+    """``count`` random-action episodes of ``horizon`` steps from ``env`` seeded ``seed``, positions
+    held at each episode's first layout."""
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    states = np.empty((count, horizon + 1, 3 * env.num_objects), np.float32)
+    actions = rng.integers(0, int(env.action_space.n), size=(count, horizon))
+    for e in range(count):
+        states[e, 0], _ = env.reset()
+        for t in range(horizon):
+            states[e, t + 1] = env.step(int(actions[e, t]))[0]
+    positions = states[:, :1].reshape(count, 1, env.num_objects, 3)[..., 1:]
+    grid = states.reshape(count, horizon + 1, env.num_objects, 3)
+    grid[..., 1:] = positions
+    frames, labels = env.render_states(grid.reshape(-1, 3 * env.num_objects))
+    shape = (count, horizon + 1)
+    return Episodes(torch.from_numpy(frames).view(*shape, *frames.shape[1:]),
+                    torch.from_numpy(labels.astype(np.int64)).view(*shape, *labels.shape[1:]),
+                    torch.from_numpy(actions))
+
+
+@torch.no_grad()
+def latents_of(model: SlotModel, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Aligned slots ``[E, T + 1, K, d]`` and flattened encoder features ``[E, T + 1, n * d_e]``."""
+    flat = frames.flatten(0, 1)
+    slots, alpha, features = [], [], []
+    for start in range(0, len(flat), 256):
+        out = model(flat[start : start + 256])
+        slots.append(out.slots)
+        alpha.append(out.alpha)
+        features.append(out.features.flatten(1))
+    shape = frames.shape[:2]
+    aligned, _ = align_slots(torch.cat(slots).view(*shape, *slots[0].shape[1:]),
+                             torch.cat(alpha).view(*shape, *alpha[0].shape[1:]))
+    return aligned, torch.cat(features).view(*shape, -1)
+
+
+@torch.no_grad()
+def decode_slots(model: SlotModel, slots: torch.Tensor) -> torch.Tensor:
+    """Images ``[B, 3, H, W]`` of slots ``[B, K, d]`` (slot decoder, then the frozen frame decoder)."""
+    features, _ = model.slot_decoder(slots)
+    return model.autoencoder.decoder(features.transpose(1, 2).reshape(len(slots), -1, model.grid, model.grid))
+
+
+@torch.no_grad()
+def decode_features(model: SlotModel, features: torch.Tensor) -> torch.Tensor:
+    """Images of flattened encoder features ``[B, n * d_e]`` (the frozen frame decoder)."""
+    return model.autoencoder.decoder(features.view(len(features), model.grid * model.grid, -1)
+                                     .transpose(1, 2).reshape(len(features), -1, model.grid, model.grid))
+
+
+def train_world_model(wm: nn.Module, latents: torch.Tensor, actions: torch.Tensor, budget: Budget,
+                      seed: int, name: str) -> dict[str, Any]:
+    """Teacher-forced eq. 7.2 (Chemical has no reward or termination to predict) on random episodes."""
+    optimizer = torch.optim.Adam(wm.parameters(), lr=WorldModelConfig().lr)
+    batches = torch.Generator().manual_seed(seed)
+    started, loss = time.perf_counter(), torch.tensor(float("nan"))
+    for u in range(1, budget.wm_updates + 1):
+        idx = torch.randint(len(latents), (budget.wm_batch,), generator=batches)
+        loss = world_model_loss(wm(latents[idx, :-1], actions[idx]), latents[idx, 1:])
+        optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(wm.parameters(), 1.0)
+        optimizer.step()
+        if u % budget.log_every == 0:
+            print(f"  seed {seed} {name}: update {u} loss {float(loss.detach()):.5f}", file=sys.stderr, flush=True)
+    return {"parameters": parameter_count(wm), "final_loss": float(loss.detach()),
+            "train_seconds": time.perf_counter() - started}
+
+
+def scores(images: torch.Tensor, truth: torch.Tensor) -> dict[str, Any]:
+    """PSNR and SSIM of predicted frames ``[E, H, 3, h, w]`` against the true ``[E, H, 3, h, w]``: at
+    the last step (mean and standard error over episodes) and averaged over every step."""
+    p = psnr(images, truth)
+    s = torch.stack([ssim(images[:, t], truth[:, t]) for t in range(images.shape[1])], 1)
+    return {"psnr_last": summary_of(p[:, -1].tolist()), "ssim_last": summary_of(s[:, -1].tolist()),
+            "psnr_per_step": p.mean(0).tolist(), "ssim_per_step": s.mean(0).tolist()}
+
+
+def evaluate(model: SlotModel, slot_wm: SlotWorldModel, mono_wm: MonolithicWorldModel,
+             test: Episodes) -> dict[str, Any]:
+    slots, features = latents_of(model, test.frames)
+    truth = frames_to_tensor(test.frames[:, 1:].flatten(0, 1)).view(*test.frames.shape[:1], -1, 3,
+                                                                      *test.frames.shape[2:4])
+    e, h = truth.shape[:2]
+    slot_images = decode_slots(model, slot_wm.rollout(slots[:, 0], test.actions).flatten(0, 1)).view_as(truth)
+    mono_images = decode_features(model, mono_wm.rollout(features[:, 0], test.actions).flatten(0, 1)).view_as(truth)
+    copy = frames_to_tensor(test.frames[:, 0])[:, None].expand_as(truth)
+    last = truth[:, -1:]
+    return {"slot": scores(slot_images, truth), "monolithic": scores(mono_images, truth), "copy": scores(copy, truth),
+            "ceiling_slot": scores(decode_slots(model, slots[:, -1]).view(e, 1, *truth.shape[2:]), last),
+            "ceiling_monolithic": scores(decode_features(model, features[:, -1]).view(e, 1, *truth.shape[2:]), last)}
+
+
+def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
+    torch.manual_seed(seed)
+    env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
+    train = episodes_of(env, seed, budget.train_episodes, budget.horizon)
+    test = episodes_of(env, seed + EVAL_SEED_OFFSET, budget.eval_episodes, budget.horizon)
+    frames = (train.frames.flatten(0, 1), train.labels.flatten(0, 1))
+    base = SlotModel(SlotConfig(num_slots=budget.num_objects + 1), budget.frame_size)
+    ae_loss = fit_autoencoder(base.autoencoder, frames[0], budget.ae_updates, seed=seed)
+    slots_budget = SlotsBudget(num_objects=budget.num_objects, frame_size=budget.frame_size,
+                               slot_updates=budget.slot_updates, log_every=budget.log_every)
+    model, slot_record = train_variant("annealed", seed, slots_budget, base.autoencoder.state_dict(), frames)
+    model.eval()
+    slots, features = latents_of(model, train.frames)
+    torch.manual_seed(seed)
+    slot_wm = SlotWorldModel(slots.shape[-1], int(env.action_space.n), WorldModelConfig(hidden=budget.wm_hidden))
+    width = monolithic_width(features.shape[-1], int(env.action_space.n), parameter_count(slot_wm))
+    mono_wm = MonolithicWorldModel(features.shape[-1], int(env.action_space.n), width)
+    out: dict[str, Any] = {"seed": seed, "autoencoder_mse": ae_loss, "slot_model": slot_record,
+                           "slot_wm": train_world_model(slot_wm, slots, train.actions, budget, seed, "slot"),
+                           "monolithic_wm": {"width": width, **train_world_model(mono_wm, features, train.actions,
+                                                                                  budget, seed, "monolithic")}}
+    out["rollouts"] = evaluate(model, slot_wm.eval(), mono_wm.eval(), test)
+    return out
+
+
+def table(results: list[dict[str, Any]]) -> str:
+    rows = ["| model | parameters | PSNR at step 20 | SSIM at step 20 | PSNR, mean of steps 1-20 |", "|---|---|---|---|---|"]
+    for name in ("slot", "monolithic", "copy", "ceiling_slot", "ceiling_monolithic"):
+        for r in results:
+            s = r["rollouts"][name]
+            params = {"slot": r["slot_wm"]["parameters"], "monolithic": r["monolithic_wm"]["parameters"]}.get(name, "-")
+            rows.append(f"| {name} (seed {r['seed']}) | {params} | {s['psnr_last']['mean']:.2f} +- "
+                        f"{s['psnr_last']['stderr']:.2f} | {s['ssim_last']['mean']:.3f} +- {s['ssim_last']['stderr']:.3f} "
+                        f"| {np.mean(s['psnr_per_step']):.2f} |")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    for f in dataclasses.fields(Budget):
+        p.add_argument(f"--{f.name.replace('_', '-')}", type=int, default=f.default)
+    p.add_argument("--out", type=Path, default=Path("benchmark-results/dyno/world_model.json"))
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    budget = Budget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Budget)})
+    results: list[dict[str, Any]] = []
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for seed in args.seeds:
+        results.append(run_seed(seed, budget))
+        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": results}, indent=1))
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()
