@@ -9,7 +9,7 @@ N ?= 2
 # Compose v2 (`docker compose`) where the docker CLI has it, else docker-compose 1.29 (Debian's).
 COMPOSE ?= $(shell docker compose version >/dev/null 2>&1 && echo "docker compose" || echo docker-compose)
 
-.PHONY: run test test-compose sysdeps-compose test-slow test-all bench bench-f1 bench-collection bench-ch3 lint up down scale logs sysdeps clean venv
+.PHONY: run test test-compose sysdeps-compose bus-secrets test-slow test-all bench bench-f1 bench-collection bench-ch3 lint up down scale logs sysdeps clean venv
 
 venv: $(STAMP)
 
@@ -88,21 +88,38 @@ bench-ch3: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m pyflakes services proto envs causal benchmarks
 
-# Grafana's admin password: generated once per checkout (mode 600, git-ignored), read by compose as
-# a secret; GRAFANA_ADMIN_PASSWORD_FILE=path uses another file instead.
+# Compose secrets are bind mounts that keep the file's host owner and mode (outside Swarm compose
+# ignores uid/gid/mode), and the containers run as other users (causeway: 10001, grafana: 472), so
+# the files are 644 and the git-ignored directory deploy/secrets/ 700: private on the host, readable
+# in the containers they are mounted into.
+# Grafana's admin password: generated once per checkout, read by compose as a secret;
+# GRAFANA_ADMIN_PASSWORD_FILE=path uses another file instead.
 GRAFANA_SECRET := deploy/secrets/grafana-admin-password
 
 $(GRAFANA_SECRET):
-	@mkdir -p $(dir $@) && umask 077 && $(PYTHON) -c "import secrets; print(secrets.token_urlsafe(24))" > $@
+	@mkdir -p $(dir $@) && chmod 700 $(dir $@) && umask 022 && \
+	  $(PYTHON) -c "import secrets; print(secrets.token_urlsafe(24))" > $@
 	@echo "Grafana admin password generated in $@ (user admin)"
 
-up: $(GRAFANA_SECRET)
+# Roles on the bus (docs/bus-roles.md): every role's credentials, the router's users file and its
+# configuration with authentication and access control, generated once per checkout. The keys name
+# the run id and the method: after changing CAUSEWAY_RUN_ID or CAUSEWAY_METHOD, `rm -r deploy/secrets`
+# and `make up` again (new passwords need the whole stack restarted).
+BUS_SECRETS := deploy/secrets/router.json5
+
+$(BUS_SECRETS): | $(STAMP)
+	@$(PY) -m services.cli bus-secrets --run $${CAUSEWAY_RUN_ID:-compose} --method $${CAUSEWAY_METHOD:-cdl} \
+	  --out $(patsubst %/secrets/,%,$(dir $@)) --file-mode 644
+
+bus-secrets: $(BUS_SECRETS)
+
+up: $(GRAFANA_SECRET) $(BUS_SECRETS)
 	$(COMPOSE) up -d --build
 
 down:
 	$(COMPOSE) down
 
-scale: $(GRAFANA_SECRET)
+scale: $(GRAFANA_SECRET) $(BUS_SECRETS)
 	$(COMPOSE) up -d --scale env-worker=$(N) --no-recreate
 
 logs:

@@ -1,5 +1,7 @@
 """compose.yaml: valid for docker-compose 1.29, every service wired to the router and scrapeable,
-env-worker scalable; deploy/zenoh/router.json5 is a router config the Zenoh 1.x parser accepts."""
+env-worker scalable; deploy/zenoh/router.json5 is a router config the Zenoh 1.x parser accepts; the
+router runs the configuration ``make up`` generates (roles on the bus), each service with its own
+role's credentials and nothing else's, and no password in compose.yaml or the image."""
 from __future__ import annotations
 
 import json
@@ -11,6 +13,8 @@ from typing import Any
 
 import pytest
 
+from services.bus.credentials import read_credentials
+from services.bus.roles import SERVICES as BUS_ROLES
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.runtime.config import parse_config
 from tests.deploy import REPO, load_yaml, require_tool
@@ -18,6 +22,10 @@ from tests.deploy import REPO, load_yaml, require_tool
 integration = pytest.mark.integration
 ROUTER_CONNECT = "tcp/router:7447"
 METRICS_PORT = "9100"
+BUS_CREDENTIALS = "/run/secrets/bus-credentials"
+ROUTER_SECRETS = {"bus-router-config": ("router.json5", "router.json5"),
+                  "bus-router-users": ("router-users", "causeway-router-users")}
+"""The router's compose secrets: name -> (file bus-secrets writes, target under /run/secrets)."""
 
 
 def _compose_config(*args: str, **variables: str) -> subprocess.CompletedProcess[str]:
@@ -138,13 +146,68 @@ def test_replay_capacity_is_one_variable_away(compose: dict[str, Any]) -> None:
 
 
 @integration
-def test_router_is_upstream_zenoh_1x_with_the_deploy_config(compose: dict[str, Any]) -> None:
+def test_router_is_upstream_zenoh_1x_with_the_generated_config(compose: dict[str, Any]) -> None:
     router = compose["services"]["router"]
     image, tag = router["image"].rsplit(":", 1)
     assert image == "eclipse/zenoh" and tag.startswith("1."), router["image"]
-    assert router["command"] == ["-c", "/etc/zenoh/router.json5"]
-    assert any(v.endswith("deploy/zenoh/router.json5:/etc/zenoh/router.json5:ro") for v in router["volumes"])
+    assert router["command"] == ["-c", "/run/secrets/router.json5"]
+    assert {s["source"]: s["target"] for s in router["secrets"]} == {n: t for n, (_, t) in ROUTER_SECRETS.items()}
+    assert "volumes" not in router, "the open deploy/zenoh/router.json5 must not be mounted"
+    for name, (written, _) in ROUTER_SECRETS.items():
+        assert Path(compose["secrets"][name]["file"]) == REPO / "deploy" / "secrets" / written, name
     assert "healthcheck" in router and router["restart"] == "unless-stopped"
+
+
+@integration
+def test_every_service_has_its_roles_credentials_and_nothing_elses(compose: dict[str, Any]) -> None:
+    services = _causeway_services(compose)
+    assert set(services) <= set(BUS_ROLES), "a compose service without a role on the bus"
+    for name, service in services.items():
+        assert service["environment"]["CAUSEWAY_BUS_CREDENTIALS"] == BUS_CREDENTIALS, name
+        assert service["secrets"] == [{"source": f"bus-{name}", "target": BUS_CREDENTIALS.rsplit("/", 1)[1]}], name
+        secret_file = Path(compose["secrets"][f"bus-{name}"]["file"])
+        assert secret_file == REPO / "deploy" / "secrets" / f"{name}.credentials", name
+    for name in set(compose["services"]) - set(services) - {"router"}:
+        assert not [s for s in compose["services"][name].get("secrets", []) if "bus-" in str(s)], name
+    users = {s["source"] for s in compose["services"]["router"]["secrets"]}
+    assert all(not users & {s["source"] for s in svc["secrets"]} for svc in services.values())
+
+
+@integration
+def test_the_routers_config_and_every_credentials_file_come_from_make(compose: dict[str, Any],
+                                                                     tmp_path: Path) -> None:
+    """The Makefile's bus-secrets rule writes every file compose mounts, the router's users file where
+    its config says, and a router that admits only the roles (``default_permission: deny``)."""
+    generated = tmp_path / "deploy" / "secrets"
+    subprocess.run(["make", "-s", "-C", str(REPO), f"BUS_SECRETS={generated / 'router.json5'}",
+                    str(generated / "router.json5")], check=True, capture_output=True, timeout=120,
+                   env={k: v for k, v in os.environ.items() if not k.startswith("CAUSEWAY_")})
+    for name, secret in compose["secrets"].items():
+        if name.startswith("bus-"):
+            assert (generated / Path(secret["file"]).name).is_file(), name
+    router = json.loads((generated / "router.json5").read_text())
+    users = router["transport"]["auth"]["usrpwd"]["dictionary_file"]
+    assert users == "/run/secrets/" + ROUTER_SECRETS["bus-router-users"][1]
+    assert router["access_control"]["enabled"] and router["access_control"]["default_permission"] == "deny"
+    assert "causeway/compose/control/all" in json.dumps(router["access_control"])
+    assert generated.stat().st_mode & 0o777 == 0o700
+    for role in BUS_ROLES:
+        credentials = generated / f"{role}.credentials"
+        assert credentials.stat().st_mode & 0o777 == 0o644, "readable by the container's user"
+        assert read_credentials(credentials).password in (generated / "router-users").read_text()
+
+
+def test_no_password_in_compose_or_the_image() -> None:
+    """Passwords live only in the git-ignored deploy/secrets/: never in compose.yaml, the repository or
+    the image's build context; services get the path of their file, not its content."""
+    text = (REPO / "compose.yaml").read_text()
+    assert "BUS_PASSWORD" not in text and "usrpwd" not in text and "GF_SECURITY_ADMIN_PASSWORD:" not in text
+    ignored = subprocess.run(["git", "check-ignore", "-q", "deploy/secrets/router-users"], cwd=REPO)
+    assert ignored.returncode == 0, "deploy/secrets/ must be git-ignored"
+    dockerignore = {line.strip() for line in (REPO / ".dockerignore").read_text().splitlines()}
+    assert "deploy" in dockerignore, "deploy/ (and its secrets/) stays out of the image's build context"
+    dockerfile = (REPO / "deploy" / "Dockerfile").read_text()
+    assert "secrets" not in dockerfile and "credentials" not in dockerfile
 
 
 @integration
@@ -209,7 +272,9 @@ def test_make_generates_a_private_grafana_password_once(tmp_path: Path) -> None:
     make = ["make", "-s", "-C", str(REPO), f"GRAFANA_SECRET={secret}", str(secret)]
     subprocess.run(make, check=True, capture_output=True, timeout=60)
     first = secret.read_text().strip()
-    assert len(first) >= 24 and first != "admin" and secret.stat().st_mode & 0o077 == 0
+    assert len(first) >= 24 and first != "admin"
+    # Readable by Grafana's user in its container (a bind mount keeps the host mode); private on the host.
+    assert secret.stat().st_mode & 0o777 == 0o644 and secret.parent.stat().st_mode & 0o777 == 0o700
     subprocess.run(make, check=True, capture_output=True, timeout=60)
     assert secret.read_text().strip() == first  # kept: a second `make up` does not change it
     other = tmp_path / "other"
