@@ -25,8 +25,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from causal.flam_nets import (FSQ, Aggregator, AttentionBlock, Factorizer, ForwardDynamics, FSQAutoencoder,
-                              InverseDynamics, TokenEmbedding, gaussian_kl)
-from causal.slots import frames_to_tensor
+                              InverseDynamics, TokenEmbedding, gaussian_kl, posterior_scale)
+from causal.slots import SlotConfig, SlotDecoder, drop_probability, frames_to_tensor
 from proto.settings import doc
 
 
@@ -40,14 +40,16 @@ class FLAMConfig:
     iterations: int = doc(3, "slot-attention iterations, each followed by temporal self-attention")
     levels: tuple[int, ...] = doc((5, 5, 5, 5), "FSQ levels per feature channel (d_e = their count)")
     beta_kl: float = doc(1e-3, "beta_KL of eq. 8.6")
+    slot_reconstruction: float = doc(0.0, "weight of an added slot-decoder reconstruction of e_t from xi_t "
+                                          "(Dyn-O's eq. 7.1 term; 0: eq. 8.6 alone, the chapter's)")
     lr: float = doc(1e-3, "Adam learning rate")
     batch_size: int = doc(16, "clips per update")
 
     def __post_init__(self) -> None:
         if min(self.num_slots, self.slot_dim, self.action_dim, self.iterations, self.batch_size) < 1:
             raise ValueError("FLAM sizes, iterations and batch size must be positive")
-        if not (self.lr > 0 and self.beta_kl >= 0) or self.slot_dim % 4:
-            raise ValueError("lr must be > 0, beta_kl >= 0 and slot_dim a multiple of 4 (attention heads)")
+        if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0) or self.slot_dim % 4:
+            raise ValueError("lr must be > 0, beta_kl and slot_reconstruction >= 0 and slot_dim a multiple of 4")
 
 
 class LAMOutput(NamedTuple):
@@ -58,10 +60,13 @@ class LAMOutput(NamedTuple):
     """Posterior of the latent actions: FLAM ``[B, T-1, K, d_a]``, monolithic ``[B, T-1, 1, K d_a]``."""
     attention: torch.Tensor | None
     """FLAM's slot attention ``[B, T, K, n]`` (None for the monolithic model)."""
+    reconstructed: torch.Tensor | None = None
+    """FLAM's slot-decoder reconstruction of e_{1:T} ``[B, T, n, d_e]`` when ``slot_reconstruction > 0``."""
 
 
 class LatentActionModel(Protocol):
-    def forward(self, features: torch.Tensor, sample: bool = True) -> LAMOutput: ...
+    def forward(self, features: torch.Tensor, sample: bool = True,
+                allowed: torch.Tensor | None = None) -> LAMOutput: ...
     def infer(self, features: torch.Tensor) -> torch.Tensor: ...
     def step(self, history: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor: ...
 
@@ -81,9 +86,14 @@ class FLAM(nn.Module):
         self.idm = InverseDynamics(d, config.action_dim)
         self.fdm = ForwardDynamics(d, config.action_dim)
         self.aggregator = Aggregator(d_e, num_tokens, d)
+        self.slot_decoder = (SlotDecoder(num_tokens, d_e, SlotConfig(slot_dim=d, decoder_hidden=d))
+                             if config.slot_reconstruction > 0 else None)
 
-    def forward(self, features: torch.Tensor, sample: bool = True) -> LAMOutput:
-        slots, attention = self.factorizer(features)
+    def forward(self, features: torch.Tensor, sample: bool = True, allowed: torch.Tensor | None = None) -> LAMOutput:
+        slots, attention = self.factorizer(features, allowed)
+        reconstructed = None
+        if self.slot_decoder is not None:
+            reconstructed = self.slot_decoder(slots.flatten(0, 1))[0].view_as(features)
         b, t, k, d = slots.shape
         current, nxt = slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d)
         mu, log_sigma = self.idm(current, nxt)
@@ -91,7 +101,7 @@ class FLAM(nn.Module):
         predicted = self.aggregator(features[:, :-1].flatten(0, 1), predicted_slots)
         shape = (b, t - 1)
         return LAMOutput(predicted.view(shape + predicted.shape[1:]), mu.view(shape + mu.shape[1:]),
-                         log_sigma.view(shape + mu.shape[1:]), attention)
+                         log_sigma.view(shape + mu.shape[1:]), attention, reconstructed)
 
     def infer(self, features: torch.Tensor) -> torch.Tensor:
         """Posterior means of the latent actions ``[B, T-1, K, d_a]`` of a clip's features."""
@@ -118,7 +128,7 @@ class MonolithicLAM(nn.Module):
         self.embed_pair = TokenEmbedding(2 * d_e, num_tokens, d)
         self.idm_tokens, self.idm_pool = AttentionBlock(d), AttentionBlock(d)
         self.query = nn.Parameter(torch.randn(1, 1, d) * d ** -0.5)
-        self.to_mu, self.to_log_sigma = nn.Linear(d, size), nn.Linear(d, size)
+        self.to_mu, self.to_log_sigma = nn.Linear(d, size), posterior_scale(d, size)
         self.embed = TokenEmbedding(d_e, num_tokens, d)
         self.action_in = nn.Linear(size, d)
         self.fdm_tokens, self.fdm_out = AttentionBlock(d), AttentionBlock(d)
@@ -135,7 +145,8 @@ class MonolithicLAM(nn.Module):
         tokens = self.fdm_tokens(tokens, tokens)
         return current + self.out(self.fdm_out(tokens, tokens))
 
-    def forward(self, features: torch.Tensor, sample: bool = True) -> LAMOutput:
+    def forward(self, features: torch.Tensor, sample: bool = True, allowed: torch.Tensor | None = None) -> LAMOutput:
+        """``allowed`` (a mask prior) is ignored: the monolithic model has no slots."""
         b, t = features.shape[:2]
         current, nxt = features[:, :-1].flatten(0, 1), features[:, 1:].flatten(0, 1)
         mu, log_sigma = self.posterior(current, nxt)
@@ -152,27 +163,52 @@ class MonolithicLAM(nn.Module):
         return self.predict(history[:, -1], alpha)
 
 
-def lam_loss(features: torch.Tensor, out: LAMOutput, beta_kl: float) -> tuple[torch.Tensor, dict[str, float]]:
+def lam_loss(features: torch.Tensor, out: LAMOutput, beta_kl: float,
+             slot_reconstruction: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 8.6 per transition, averaged over transitions: the squared error of the next features
-    (summed over tokens and channels) plus beta_KL times the KL summed over slots."""
+    (summed over tokens and channels) plus beta_KL times the KL summed over slots; plus, when the
+    model reconstructs, ``slot_reconstruction`` times the squared error of e_t from its slots."""
     prediction = (out.predicted - features[:, 1:]).pow(2).flatten(2).sum(-1).mean()
     kl = gaussian_kl(out.mu, out.log_sigma).sum(-1).mean()
-    return prediction + beta_kl * kl, {"prediction_sse": float(prediction.detach()), "kl": float(kl.detach())}
+    terms = {"prediction_sse": float(prediction.detach()), "kl": float(kl.detach())}
+    loss = prediction + beta_kl * kl
+    if out.reconstructed is not None:
+        reconstruction = (out.reconstructed - features).pow(2).flatten(2).sum(-1).mean()
+        loss = loss + slot_reconstruction * reconstruction
+        terms["slot_reconstruction_sse"] = float(reconstruction.detach())
+    return loss, terms
 
 
 class LAMTrainer:
-    """Adam on eq. 8.6 for FLAM or the monolithic model, on clips of frozen features."""
+    """Adam on eq. 8.6 for FLAM or the monolithic model, on clips of frozen features.
 
-    def __init__(self, model: nn.Module, seed: int = 0) -> None:
+    ``mask_prior="annealed"`` is Dyn-O's prior (causal/slots.py) applied to FLAM's slot attention:
+    slot ``k`` sees only the tokens of segment ``k`` (token labels given to :meth:`update`), each clip
+    dropping its masks with probability log(1 + u) / log(1 + U) at update u of ``total_updates``."""
+
+    def __init__(self, model: nn.Module, seed: int = 0, mask_prior: str = "none", total_updates: int = 0) -> None:
+        if mask_prior not in ("none", "annealed"):
+            raise ValueError(f"mask_prior must be 'none' or 'annealed', got {mask_prior!r}")
         self.model, self.config = model, model.config
+        self.mask_prior, self.total_updates = mask_prior, total_updates
         self.optimizer = torch.optim.Adam(model.parameters(), lr=self.config.lr)
         torch.manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(seed)
         self.updates = 0
 
-    def update(self, features: torch.Tensor) -> dict[str, float]:
-        """One step on a batch of clips ``[B, T, n, d_e]``; the loss terms."""
+    def masks_for(self, labels: torch.Tensor | None) -> torch.Tensor | None:
+        """This update's attention masks ``[B, T, K, n]`` from token labels ``[B, T, n]``, or None."""
+        if self.mask_prior == "none" or labels is None:
+            return None
+        allowed = F.one_hot(labels.long(), self.config.num_slots).permute(0, 1, 3, 2).bool()
+        dropped = torch.rand(len(labels), generator=self.generator) < drop_probability(self.updates, self.total_updates)
+        return allowed | dropped[:, None, None, None]
+
+    def update(self, features: torch.Tensor, labels: torch.Tensor | None = None) -> dict[str, float]:
+        """One step on a batch of clips ``[B, T, n, d_e]`` (token labels ``[B, T, n]`` for a mask prior)."""
         self.model.train()
-        loss, terms = lam_loss(features, self.model(features), self.config.beta_kl)
+        out = self.model(features, allowed=self.masks_for(labels))
+        loss, terms = lam_loss(features, out, self.config.beta_kl, self.config.slot_reconstruction)
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)

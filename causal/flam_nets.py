@@ -97,9 +97,10 @@ class Factorizer(nn.Module):
         self.mlp = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, dim))
         self.temporal = AttentionBlock(dim)
 
-    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, features: torch.Tensor, allowed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Slots ``[B, T, K, D]`` of features ``[B, T, n, d_e]`` and the last slot attention
-        ``[B, T, K, n]`` (normalised over slots: each token's share per slot)."""
+        ``[B, T, K, n]`` (normalised over slots: each token's share per slot). ``allowed`` (bool
+        ``[B, T, K, n]``) is Dyn-O's mask prior: slot ``k`` attends only to its tokens."""
         b, t, n, _ = features.shape
         tokens = self.norm_tokens(self.embed(features)).flatten(0, 1)
         keys, values = self.to_k(tokens), self.to_v(tokens)
@@ -108,6 +109,8 @@ class Factorizer(nn.Module):
         causal = torch.ones(t, t, dtype=torch.bool).triu(1)
         for _ in range(self.iterations):
             logits = torch.einsum("mkd,mnd->mkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
+            if allowed is not None:
+                logits = logits.masked_fill(~allowed.flatten(0, 1), -1e9)
             attention = logits.softmax(dim=1)
             updates = (attention / (attention.sum(dim=2, keepdim=True) + 1e-8)) @ values
             slots = self.gru(updates.reshape(-1, d), slots.reshape(-1, d)).view(b * t, k, d)
@@ -133,7 +136,7 @@ class InverseDynamics(nn.Module):
     def __init__(self, dim: int, action_dim: int) -> None:
         super().__init__()
         self.spatial, self.temporal = AttentionBlock(dim), AttentionBlock(dim)
-        self.to_mu, self.to_log_sigma = nn.Linear(dim, action_dim), nn.Linear(dim, action_dim)
+        self.to_mu, self.to_log_sigma = nn.Linear(dim, action_dim), posterior_scale(dim, action_dim)
 
     def forward(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         summary = self.spatial(current, current)
@@ -165,6 +168,15 @@ class Aggregator(nn.Module):
 
     def forward(self, features: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
         return features + self.out(self.block(self.embed(features), slots))
+
+
+def posterior_scale(dim: int, action_dim: int, initial_log_sigma: float = -3.0) -> nn.Linear:
+    """M_sigma as a log-scale head starting near ``initial_log_sigma``: a posterior that starts narrow
+    keeps the latent action informative while the FDM learns to use it (at sigma = 1 the FDM first
+    learns to ignore the noise, and the posterior collapses to the prior)."""
+    head = nn.Linear(dim, action_dim)
+    nn.init.constant_(head.bias, initial_log_sigma)
+    return head
 
 
 def gaussian_kl(mu: torch.Tensor, log_sigma: torch.Tensor) -> torch.Tensor:

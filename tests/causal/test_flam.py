@@ -150,3 +150,32 @@ def test_psnr_of_a_known_error_and_config_checks() -> None:
         FLAMConfig(slot_dim=30)
     with pytest.raises(ValueError):
         FLAMConfig(beta_kl=-1.0)
+
+
+def test_mask_prior_confines_each_slot_to_its_segment_and_anneals_away() -> None:
+    model = _flam()
+    features = _features(b=2, t=3)
+    labels = torch.randint(CONFIG.num_slots, (2, 3, TOKENS), generator=torch.Generator().manual_seed(0))
+    trainer = LAMTrainer(model, seed=0, mask_prior="annealed", total_updates=10)
+    allowed = trainer.masks_for(labels)
+    assert allowed is not None and allowed.shape == (2, 3, CONFIG.num_slots, TOKENS)
+    torch.testing.assert_close(allowed.sum(dim=2), torch.ones(2, 3, TOKENS, dtype=torch.long))
+    _, attention = model.factorizer(features, allowed)
+    assert attention[~allowed].abs().max() < 1e-6
+    trainer.updates = 10
+    assert trainer.masks_for(labels).all()
+    assert LAMTrainer(model, mask_prior="none").masks_for(labels) is None
+    trainer.update(features, labels)
+    with pytest.raises(ValueError, match="mask_prior"):
+        LAMTrainer(model, mask_prior="always")
+
+
+def test_slot_reconstruction_term_is_added_when_weighted() -> None:
+    torch.manual_seed(0)
+    model = FLAM(FLAMConfig(**{**CONFIG.__dict__, "slot_reconstruction": 0.5}), TOKENS).eval()
+    features = _features(b=2, t=3)
+    out = model(features, sample=False)
+    assert out.reconstructed is not None and out.reconstructed.shape == features.shape
+    loss, terms = lam_loss(features, out, beta_kl=0.0, slot_reconstruction=0.5)
+    assert float(loss.detach()) == pytest.approx(terms["prediction_sse"] + 0.5 * terms["slot_reconstruction_sse"], rel=1e-5)
+    assert _flam()(features).reconstructed is None
