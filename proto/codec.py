@@ -305,6 +305,7 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "factor_locs": _tuple(_float), "factor_scales": _tuple(_float),
         "action_kind": _str, "action_size": _int, "episode_length": _int,
         "global_graph": _optional(_GRAPH), "config_json": _str, "reward_parents": _optional(_PARENTS),
+        "state_low": _optional(_F32_1D), "state_high": _optional(_F32_1D),
     },
     TransitionBatch: {
         "worker_id": _str, "seq": _int, "policy_version": _int,
@@ -379,6 +380,18 @@ def _check_env_spec(m: EnvSpec) -> None:
         _check_graph(m.global_graph, (n, n + 1), "EnvSpec.global_graph")
     if m.reward_parents is not None:
         _check_graph(m.reward_parents, (n + 1,), "EnvSpec.reward_parents")
+    _check_bounds(m)
+
+
+def _check_bounds(m: EnvSpec) -> None:
+    _require((m.state_low is None) == (m.state_high is None), "inconsistent",
+             "EnvSpec: state_low and state_high come together")
+    if m.state_low is None:
+        return
+    for name in ("state_low", "state_high"):
+        shape = getattr(m, name).shape
+        _require(shape == (m.state_dim,), "inconsistent", f"EnvSpec.{name}: shape {shape}, state_dim {m.state_dim}")
+    _require(bool((m.state_low <= m.state_high).all()), "inconsistent", "EnvSpec: state_low above state_high")
 
 
 def _check_transitions(m: TransitionBatch) -> None:
@@ -491,17 +504,3 @@ _VALIDATORS: Final[dict[type, Callable[[Any], None]]] = {
     Control: _check_control,
     ServiceStats: _check_stats,
 }
-
-
-def check_fits(spec: EnvSpec, batch: TransitionBatch) -> None:
-    """Raise ProtocolError('inconsistent') unless ``batch`` has the layout ``spec`` announces.
-
-    Decoding checks a message on its own; this checks it against the run's EnvSpec, which every
-    consumer of transitions does before storing anything.
-    """
-    if batch.state.shape[1] != spec.state_dim or batch.action.shape[1] != spec.action_dim:
-        raise ProtocolError("inconsistent", f"TransitionBatch from {batch.worker_id}: state/action widths "
-                            f"{batch.state.shape[1]}/{batch.action.shape[1]}, EnvSpec says {spec.state_dim}/{spec.action_dim}")
-    graphs = batch.local_graph
-    if graphs is not None and graphs.shape[1:] != (spec.num_factors, spec.num_factors + 1):
-        raise ProtocolError("inconsistent", f"TransitionBatch from {batch.worker_id}: local graphs {graphs.shape[1:]}")

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -50,6 +50,12 @@ class EnvSpec:
     reward_parents: np.ndarray | None = None
     """uint8 ``[d_S + 1]``: which factors at t (and the action, last) the task's reward depends on,
     when known (schema version 4; chapter 4's causal reward model is scored against it)."""
+    state_low: np.ndarray | None = None
+    """float32 ``[state_dim]``: the env's declared observation space, lower bounds (an infinite bound
+    travels as float32's largest value), when it declares one (schema version 6). Consumers refuse
+    transitions outside ``[state_low, state_high]`` (``proto.codec.check_fits``)."""
+    state_high: np.ndarray | None = None
+    """float32 ``[state_dim]``: upper bounds, with ``state_low``."""
 
     @property
     def num_factors(self) -> int:

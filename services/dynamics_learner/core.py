@@ -11,9 +11,10 @@ from causal.factored import FactorLayout
 from causal.method import export_tensors
 from causal.methods import get_method, method_config
 from causal.replay import PrioritisedReplay, ReplayBuffer, heldout_mask
-from proto.codec import check_fits
+from proto.fits import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.runtime.accept import VersionGate
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 from services.runtime.device import resolve_device
 
@@ -34,8 +35,12 @@ class DynamicsLearnerCore:
         self.version = 0
         self.env_steps = 0
         self.graph_version = -1
+        self.graph_versions = VersionGate()
+        """The evaluator's report versions taken so far: each must move forward by a bounded step."""
         self.last_stats: dict[str, float] = {}
         self.resumed_at_update = 0
+        self.resumed_env_steps = 0
+        """Env steps the checkpoint held when this process resumed (what a restart kept of the data)."""
 
     def ingest(self, batch: TransitionBatch) -> int:
         """Keep the training episodes of ``batch``; returns how many steps were kept.
@@ -80,10 +85,10 @@ class DynamicsLearnerCore:
 
     def apply_graph(self, report: GraphReport) -> bool:
         """Give the trainer the evaluator's graph (CDL: PA(S^j) for the causal term); stale, misshapen
-        and other methods' reports are ignored."""
+        and other methods' reports are ignored, a version jump past the bound is refused (ProtocolError)."""
         n = self.spec.num_factors
         if (report.kind != self.method.name or report.weights_version < self.graph_version
-                or report.adjacency.shape != (n, n + 1)):
+                or report.adjacency.shape != (n, n + 1) or not self.graph_versions.take("graph", report.weights_version)):
             return False
         self.graph_version = report.weights_version
         self.trainer.set_parents(report.adjacency)
@@ -151,10 +156,11 @@ class DynamicsLearnerCore:
         self.version = max(int(saved["version"]), self._published_version(path))
         self.env_steps = int(saved["env_steps"])
         self.graph_version = int(saved["graph_version"])
-        self.resumed_at_update = self.trainer.updates
+        self.resumed_at_update, self.resumed_env_steps = self.trainer.updates, self.env_steps
         return True
 
     def progress(self) -> dict[str, float]:
         return {"updates": self.trainer.updates, "env_steps": self.env_steps, "replay_size": self.replay.size,
                 "weights_version": self.version, "resumed_at_update": self.resumed_at_update,
+                "resumed_env_steps": self.resumed_env_steps,
                 "lr": self.trainer.lr, **self.last_stats}

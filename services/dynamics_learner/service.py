@@ -127,7 +127,7 @@ def _drain(core: DynamicsLearnerCore, transitions, graphs, shell: ServiceShell) 
     for _, batch in transitions.drain():
         shell.guarded(core.ingest, batch)
     for _, report in graphs.drain():
-        core.apply_graph(report)
+        shell.guarded(core.apply_graph, report)
 
 
 def _publish(shell: ServiceShell, core: DynamicsLearnerCore, latest, metrics: _Metrics) -> None:

@@ -6,7 +6,7 @@ import json
 import socket
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -14,6 +14,7 @@ from envs.registry import EnvEntry, env_entry
 from proto.messages import EnvSpec, TransitionBatch, Weights
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.episodes import EpisodeStats
+from services.runtime.accept import VersionGate
 
 if TYPE_CHECKING:
     from causal.rl.policy_weights import Agent
@@ -60,10 +61,12 @@ class PolicyActor:
         self.skills = None
         self.config_json = ""
         self.version = 0
+        self.versions = VersionGate()
 
     def load(self, weights: Weights) -> bool:
-        """Take ``weights`` if newer than the current ones (ValueError if they do not fit this env)."""
-        if weights.version <= self.version:
+        """Take ``weights`` if newer than the current ones (ValueError if they do not fit this env;
+        ProtocolError if their version jumps past the bound)."""
+        if weights.version <= self.version or not self.versions.newer("policy", weights.version):
             return False
         from causal.rl.policy_weights import agent_from_config_json, import_policy, policy_options
 
@@ -72,6 +75,7 @@ class PolicyActor:
             agent = agent_from_config_json(weights.config_json, self.seed, self.obs_dim)
             skills = self._skill_runner(policy_options(weights.config_json))
         import_policy(agent, weights.tensors)
+        self.versions.accept("policy", weights.version)
         self.agent, self.skills, self.config_json, self.version = agent, skills, weights.config_json, weights.version
         return True
 
@@ -136,6 +140,19 @@ def resolve_worker_index(cfg: EnvWorkerConfig) -> EnvWorkerConfig:
     return dataclasses.replace(cfg, worker_index=zlib.crc32(host.encode()) % 100_000, instance=host)
 
 
+def with_declared_bounds(spec: EnvSpec, space: Any) -> EnvSpec:
+    """``spec`` carrying the observation space's bounds (``state_low``/``state_high``) where the space is a
+    Box of the state's width (an infinite bound as float32's largest value): consumers then refuse
+    transitions outside them. Other spaces declare no bounds."""
+    low, high = getattr(space, "low", None), getattr(space, "high", None)
+    if low is None or high is None or np.shape(low) != (spec.state_dim,) or np.shape(high) != (spec.state_dim,):
+        return spec
+    big = float(np.finfo(np.float32).max)
+    bounds = [np.nan_to_num(np.asarray(b, np.float64), posinf=big, neginf=-big).clip(-big, big).astype(np.float32)
+              for b in (low, high)]
+    return dataclasses.replace(spec, state_low=bounds[0], state_high=bounds[1])
+
+
 class EnvWorkerCore:
     """Steps one environment and packs consecutive steps into TransitionBatches."""
 
@@ -147,7 +164,7 @@ class EnvWorkerCore:
         self.worker_id = f"w{cfg.worker_index}"
         self.entry = env_entry(cfg.env)
         self.env = self.entry.make(**self.entry.kwargs(cfg.env_options))
-        self.spec: EnvSpec = self.env.unwrapped.env_spec()
+        self.spec: EnvSpec = with_declared_bounds(self.env.unwrapped.env_spec(), self.env.observation_space)
         seed = cfg.seed + cfg.worker_index + GENERATION_SEED_STRIDE * generation
         self.random_policy = default_policy(self.entry, self.env.action_space, seed)
         self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())

@@ -14,16 +14,18 @@ from torch import nn
 
 from causal.abstraction import with_self_edges
 from causal.edge_tests import EdgeEstimate, decide
+from causal.factored import FactorLayout
 from causal.graph_metrics import score_graph
 from causal.method import EdgeEstimator, has_standard_errors, import_tensors, task_abstraction
 from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
-from proto.codec import check_fits
+from proto.fits import check_fits
 from proto.messages import EnvSpec, GraphReport, LocalGraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.local import LocalGraphScorer
 from services.graph_evaluator.reward import abstraction_metrics, reward_metrics
+from services.runtime.accept import VersionGate, check_weights_config
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 from services.runtime.device import resolve_device
 
@@ -54,6 +56,9 @@ class GraphEvaluatorCore:
         self.model: nn.Module | None = None
         self.model_config = ""
         self.weights: Weights | None = None
+        self.layout = FactorLayout.from_spec(spec)
+        self.versions = VersionGate()
+        """The learner's versions taken so far: each must move forward by a bounded step."""
         self.evaluated_version = -1
         self.evaluated_updates = 0
         self.cmi_ema: np.ndarray | None = None
@@ -77,19 +82,21 @@ class GraphEvaluatorCore:
         return int(keep.sum())
 
     def load_weights(self, weights: Weights) -> None:
-        """Remember the newest weights; the model is rebuilt only when its config changes (ValueError
-        for weights of another method, or that do not rebuild)."""
-        if self.weights is not None and weights.version <= self.weights.version:
+        """Remember the newest weights; the model is rebuilt only when its config changes. ValueError
+        (before any model is built) for weights of another method or factor layout, whose configuration
+        does not describe the tensors they carry, or whose version jumps past the bound
+        (:class:`~services.runtime.accept.VersionGate`)."""
+        if not self.versions.newer(self.kind, weights.version):
             return
         if weights.config_json != self.model_config:
-            if json.loads(weights.config_json).get("model") != self.kind:
-                raise ValueError(f"weights of method {weights.model!r}, this evaluator runs {self.kind!r}")
+            check_weights_config(weights.config_json, weights.tensors, self.kind, self.layout, model_from_config_json)
             self.model, self.model_config = model_from_config_json(weights.config_json).to(self.device), weights.config_json
             if self.method.global_graph is not None:
                 self.threshold = float(self.method.global_graph.threshold(self.model))
             if self.method.reward_graph is not None:
                 self.reward_threshold = float(self.method.reward_graph.threshold(self.model))
         import_tensors(self.model, weights.tensors)
+        self.versions.accept(self.kind, weights.version)
         self.weights = weights
 
     @property

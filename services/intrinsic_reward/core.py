@@ -11,9 +11,11 @@ from causal.factored import FactorLayout
 from causal.intrinsic import BootstrapEnsemble, make_reward, score
 from causal.method import import_tensors
 from causal.methods import get_method, model_from_config_json
-from proto.codec import ProtocolError, check_fits
+from proto.codec import ProtocolError
+from proto.fits import check_fits
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
 from services.intrinsic_reward.config import IntrinsicRewardConfig
+from services.runtime.accept import VersionGate, check_weights_config
 from services.runtime.device import resolve_device
 
 
@@ -41,30 +43,37 @@ class IntrinsicRewardCore:
         self.weights_version = 0
         self.weights_env_steps = 0
         self.graph_version = -1
+        self.versions = VersionGate()
+        """The learner's weights versions and the evaluator's report versions taken so far."""
         n = spec.num_factors
         self.parents = np.ones((n, n + 1), dtype=bool)
         self.ensemble = BootstrapEnsemble(FactorLayout.from_spec(spec), cfg.ensemble_members, cfg.ensemble_hidden,
                                           cfg.ensemble_lr, seed=cfg.seed) if self.reward.source == "ensemble" else None
 
     def load_weights(self, weights: Weights) -> bool:
-        """Use newer weights (ValueError if they do not rebuild into a model for this EnvSpec)."""
-        if weights.version <= self.weights_version:
+        """Use newer weights. ValueError, before any model is built, for weights of another method or
+        factor layout, whose configuration does not describe their tensors, or whose version jumps
+        past the bound (:mod:`services.runtime.accept`)."""
+        if weights.version <= self.weights_version or not self.versions.newer("weights", weights.version):
             return False
         if weights.config_json != self.model_config:
-            if weights.model != self.cfg.method:
-                raise ValueError(f"weights of method {weights.model!r}, the run's is {self.cfg.method!r}")
-            model = model_from_config_json(weights.config_json).to(self.device)
-            if model.layout.state_dim != self.spec.state_dim or model.layout.num_factors != self.spec.num_factors:
-                raise ValueError(f"weights v{weights.version} do not fit the EnvSpec")
-            self.model, self.model_config = model, weights.config_json
+            check_weights_config(weights.config_json, weights.tensors, self.cfg.method, FactorLayout.from_spec(self.spec),
+                                 model_from_config_json)
+            self.model, self.model_config = model_from_config_json(weights.config_json).to(self.device), weights.config_json
         import_tensors(self.model, weights.tensors)
+        self.versions.accept("weights", weights.version)
         self.weights_version, self.weights_env_steps = weights.version, weights.env_steps
         return True
 
     def apply_graph(self, report: GraphReport) -> bool:
-        """Take PA(j) from the newest graph report; stale or misshapen reports are ignored."""
-        if report.weights_version < self.graph_version or report.adjacency.shape != self.parents.shape:
+        """Take PA(j) from the newest graph report; stale or misshapen reports are ignored, a version
+        jump past the bound is refused (ProtocolError)."""
+        if report.adjacency.shape != self.parents.shape:
             return False
+        if report.weights_version < self.graph_version or (report.weights_version > self.graph_version
+                                                            and not self.versions.newer("graph", report.weights_version)):
+            return False
+        self.versions.accept("graph", report.weights_version)
         self.graph_version = report.weights_version
         self.parents = report.adjacency.astype(bool)
         return True

@@ -74,7 +74,7 @@ def _load(shell: ServiceShell, core: IntrinsicRewardCore, weights: list[Weights]
             shell.metrics.reject("inconsistent")
             log.warning("rejected weights v%d: %s", w.version, exc)
     for g in graphs:
-        core.apply_graph(g)
+        shell.guarded(core.apply_graph, g)
     metrics.version.set(core.weights_version)
     metrics.graph.set(core.graph_version)
 

@@ -30,12 +30,13 @@ from causal.rl import ActionSpec, PPOAgent, RolloutBatch, SACAgent, UniformRepla
 from causal.rl.base import as_batch
 from causal.rl.ppo import ActorCritic
 from envs.registry import ENVS
-from proto.codec import check_fits
+from proto.fits import check_fits
 from proto.messages import EnvSpec, GraphReport, ScoredBatch, TransitionBatch, Weights
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.options import Decision, OptionStitcher
 from causal.rl.policy_weights import MODEL, export_policy, policy_config_json
 from services.runtime.checkpoint import load_checkpoint, save_checkpoint
+from services.runtime.accept import VersionGate
 from services.runtime.device import resolve_device
 
 DROP_REASONS = ("stale", "future", "random_policy", "unknown_policy")
@@ -129,6 +130,8 @@ class PolicyLearnerCore:
         self.lags: Counter[str] = Counter()
         """Received batches by policy lag: ``"0"`` .. ``str(max_policy_lag)``, ``"over"`` (stale), ``"future"``."""
         self.graph_version = -1
+        self.graph_versions = VersionGate()
+        """The evaluator's report versions taken so far (ProtocolError for a jump past the bound)."""
         self.kept_factors: tuple[int, ...] | None = None
         prefixes = tuple(p.strip() for p in cfg.hide.split(",") if p.strip())
         self.hidden = frozenset(j for j, name in enumerate(self.layout.names) if name.startswith(prefixes))
@@ -237,7 +240,8 @@ class PolicyLearnerCore:
     def apply_graph(self, report: GraphReport) -> bool:
         """Mask the policy input to the report's abstraction; True when the kept factors changed."""
         if not self.cfg.abstraction or report.weights_version < self.graph_version \
-                or len(report.factor_names) != self.layout.num_factors:
+                or len(report.factor_names) != self.layout.num_factors \
+                or not self.graph_versions.take("graph", report.weights_version):
             return False
         self.graph_version = report.weights_version
         kept = set(Abstraction(report.controllable, report.action_relevant, report.action_irrelevant).kept)

@@ -86,7 +86,7 @@ def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
 
 def _drain(core: PolicyLearnerCore, source: Inbox, graphs: Inbox, shell: ServiceShell, metrics: _Metrics) -> None:
     for _, report in graphs.drain():
-        if core.apply_graph(report):
+        if shell.guarded(core.apply_graph, report):
             log.info("policy input masked to factors %s", core.kept_factors)
     for _, message in source.drain():
         verdict = shell.guarded(core.ingest, message)

@@ -60,6 +60,7 @@ def test_resume_keeps_the_ratio(tmp_path) -> None:
     resumed, _ = learner_and_worker(0.02)
     assert resumed.restore(tmp_path / "learner.pt")
     assert (resumed.trainer.updates, resumed.env_steps) == (core.trainer.updates, 256) and not resumed.may_update
+    assert resumed.progress()["resumed_env_steps"] == 256 and core.progress()["resumed_env_steps"] == 0
 
 
 def test_a_resumed_learner_publishes_versions_above_any_it_published(tmp_path) -> None:

@@ -5,7 +5,8 @@ import dataclasses
 
 import numpy as np
 
-from proto.codec import check_fits, decode, encode
+from proto.codec import decode, encode
+from proto.fits import check_fits
 from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore, resolve_worker_index

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from envs.skills import OPTION_NAMES
-from proto.codec import check_fits, decode, encode
+from proto.codec import decode, encode
+from proto.fits import check_fits
 from proto.messages import EnvSpec, TransitionBatch
 from services.runtime.config import build_config
 from services.env_worker.config import EnvWorkerConfig

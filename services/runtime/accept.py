@@ -1,0 +1,105 @@
+"""What a consumer accepts from the bus beyond a message's own validity (issue 20): versions that
+move forward by bounded steps from the last accepted one of the same publisher, and weights whose
+model configuration is the run's and describes exactly the tensors the message carries, checked
+before any model is built. Pure: no bus, no metrics (the shells count the refusals).
+
+Roles on the bus stop strangers and wrong roles; these checks stop a message of the right role that
+a faulty or compromised publisher got wrong: a forged version 2**62 would otherwise make every later
+(real) version look stale forever, and a 1.3 KB message whose configuration names large widths would
+allocate gigabytes before its tensors were found not to fit.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from typing import TYPE_CHECKING, Any, Callable, Final, Mapping
+
+import numpy as np
+
+from proto.codec import ProtocolError
+
+if TYPE_CHECKING:  # torch is imported where a model is checked: an env-worker without a policy never loads it
+    from torch import nn
+
+    from causal.factored import FactorLayout
+
+MAX_VERSION_STEP: Final = 10_000
+"""Largest step a publisher's version may take from its last accepted one. Versions move by one per
+publication (a restarted learner continues above its high-water mark), so a consumer would have to
+miss this many publications in a row (hours at a publication per second) to refuse a real one."""
+
+
+class VersionGate:
+    """The last accepted version of each publisher; a new version must be newer, by at most ``max_step``.
+
+    A consumer's first version from a publisher is taken as it is (a consumer may join a run at any
+    version); from then on a jump beyond ``max_step`` is refused (``ProtocolError('inconsistent')``)
+    and the last accepted version stays, so the real publisher's next versions are still taken."""
+
+    def __init__(self, max_step: int = MAX_VERSION_STEP) -> None:
+        if max_step < 1:
+            raise ValueError(f"max_step must be >= 1, got {max_step}")
+        self.max_step = max_step
+        self.last: dict[str, int] = {}
+
+    def newer(self, publisher: str, version: int) -> bool:
+        """True for a version above the last accepted one (within the bound; not yet accepted: call
+        :meth:`accept` once the message is used), False for a repeat or an older one (ignore it).
+        ``ProtocolError`` for a jump beyond the bound."""
+        last = self.last.get(publisher)
+        if last is None:
+            return True
+        if version > last + self.max_step:
+            raise ProtocolError("inconsistent", f"{publisher} version {version} jumps more than {self.max_step} "
+                                                f"past the last accepted {last}")
+        return version > last
+
+    def accept(self, publisher: str, version: int) -> None:
+        """Record ``version`` as the publisher's last accepted one."""
+        self.last[publisher] = version
+
+    def take(self, publisher: str, version: int) -> bool:
+        """:meth:`newer`, and :meth:`accept` when it is: for a message used as soon as it is checked."""
+        if not self.newer(publisher, version):
+            return False
+        self.accept(publisher, version)
+        return True
+
+
+def check_weights_config(config_json: str, tensors: Mapping[str, np.ndarray], method: str, layout: "FactorLayout",
+                         build: "Callable[[str], nn.Module]") -> None:
+    """``ValueError`` unless ``config_json`` is a model of the run's ``method`` for the run's factor
+    ``layout`` whose parameters are exactly ``tensors`` (names and shapes). The model is built on
+    torch's meta device, which allocates no memory, so a configuration that names large widths is
+    refused for the few bytes its message carries, never allocated. ``build``: the config JSON -> a model
+    (``causal.methods.model_from_config_json``)."""
+    import torch
+
+    config = _parse(config_json)
+    if config.get("model") != method:
+        raise ValueError(f"weights of method {config.get('model')!r}, this run's is {method!r}")
+    if config.get("layout") != json.loads(json.dumps(asdict(layout))):
+        raise ValueError(f"weights for another factor layout than this run's ({_short(config.get('layout'))})")
+    with torch.device("meta"):
+        shapes = {name: tuple(p.shape) for name, p in build(config_json).named_parameters()}
+    carried = {name: tuple(array.shape) for name, array in tensors.items()}
+    if shapes != carried:
+        differ = sorted(n for n in set(shapes) | set(carried) if shapes.get(n) != carried.get(n))
+        raise ValueError(f"the model configuration describes {sum(int(np.prod(s)) for s in shapes.values()):,} "
+                         f"parameters, the message carries {sum(a.size for a in tensors.values()):,}; they differ "
+                         f"at {', '.join(differ[:3])}")
+
+
+def _parse(config_json: str) -> dict[str, Any]:
+    try:
+        config = json.loads(config_json)
+    except ValueError as exc:
+        raise ValueError(f"model configuration is not JSON: {exc}") from None
+    if not isinstance(config, dict):
+        raise ValueError("model configuration is not a JSON object")
+    return config
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 80 else text[:77] + "..."
