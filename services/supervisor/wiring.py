@@ -197,6 +197,9 @@ def check_ports_free(cfg: RunConfig) -> None:
         if not 0 < port <= 65535:
             raise ValueError(f"{what}: port {port} is outside 1-65535")
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            # As the router and the HTTP servers bind: a port whose old connections linger in TIME_WAIT
+            # (a killed run's, started again at once) is free to them; one another socket listens on is not.
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 probe.bind((LOOPBACK, port))
             except OSError as exc:

@@ -46,6 +46,25 @@ def test_a_port_in_use_is_refused_with_what_needs_it(tmp_path, capsys) -> None:
     assert list(ports(free)) == ["router (--router-port)"]
 
 
+def test_a_port_whose_old_connections_linger_is_not_refused(tmp_path) -> None:
+    """A killed run started again at once: its router's port holds connections in TIME_WAIT (the server
+    closed first), which the router's own bind (SO_REUSEADDR) ignores; only a listener makes it taken."""
+    with socket.socket() as listener:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the router's (and HTTP servers') listeners
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        client = socket.create_connection(("127.0.0.1", port))
+        served, _ = listener.accept()
+        served.close()  # the server's side closes first: its end of the connection enters TIME_WAIT
+        client.close()
+    with socket.socket() as plain:  # what a probe without SO_REUSEADDR sees
+        with pytest.raises(OSError):
+            plain.bind(("127.0.0.1", port))
+    check_ports_free(resolve(build_config(RunConfig, router_port=port, metrics_base_port=0, dashboard_port=0,
+                                          run_dir=str(tmp_path))))
+
+
 def test_every_listening_port_of_the_run_is_checked() -> None:
     cfg = resolve(build_config(RunConfig, router_port=7447, metrics_base_port=9100, workers=2, collector="ppo"))
     assert sorted(ports(cfg).values()) == [7447, 8080, 9101, 9102, 9103, 9104, 9110, 9111]
