@@ -223,8 +223,8 @@ def plot_scores(history: list[dict[str, float]], keys: list[str] | tuple[str, ..
     steps = [h["env_steps"] for h in history]
     fig, ax = plt.subplots(figsize=(7, 4))
     for key in keys:
-        if key in history[0]:
-            ax.plot(steps, [h[key] for h in history], label=key)
+        if key in history[0]:  # a report without the key (forged, or of an older evaluator) leaves a gap
+            ax.plot(steps, [h.get(key, float("nan")) for h in history], label=key)
     ax.set_xlabel("env steps")
     ax.set_ylabel(ylabel)
     ax.set_ylim(0, 1.02)

@@ -29,6 +29,7 @@ from proto.messages import Control, GraphReport, LocalGraphReport, ServiceStats
 from services.bus.credentials import read_credentials
 from services.bus.router import start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
+from services.runtime.accept import VersionGate
 from services.runtime.config import to_environ, write_config
 from services.runtime.device import resolve_device
 from services.supervisor.analysis import RunRecord, analyse, git_revision
@@ -59,6 +60,8 @@ class Supervisor:
         self.stop_reason = ""
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        self.report_versions = VersionGate()
+        """Report versions taken into the history: each newer than the last, by a bounded step."""
         self._own_stop = -1.0
         self.pending_scale: queue.Queue[str] = queue.Queue()
         self.retired: list[ManagedProcess] = []
@@ -190,8 +193,11 @@ class Supervisor:
     def _on_graph(self, key: str, payload: bytes) -> None:
         try:
             report = decode(payload, GraphReport)
-        except ProtocolError:
-            log.warning("bad graph report on %s", key)
+            fresh = self.report_versions.take(f"graph/{report.kind}", report.weights_version)
+        except ProtocolError as exc:
+            log.warning("bad graph report on %s: %s", key, exc)
+            return
+        if not fresh:  # a repeat or an older version: the history has it, or never will
             return
         with self._lock:
             self.last_report = report
@@ -203,8 +209,11 @@ class Supervisor:
     def _on_local(self, key: str, payload: bytes) -> None:
         try:
             report = decode(payload, LocalGraphReport)
-        except ProtocolError:
-            log.warning("bad local-graph report on %s", key)
+            fresh = self.report_versions.take(f"local/{report.kind}", report.weights_version)
+        except ProtocolError as exc:
+            log.warning("bad local-graph report on %s: %s", key, exc)
+            return
+        if not fresh:
             return
         with self._lock:
             self.last_local = report

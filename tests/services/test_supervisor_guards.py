@@ -139,3 +139,32 @@ def test_a_configuration_exit_stops_the_run_with_the_services_reason(tmp_path) -
     proc.process.wait()
     with pytest.raises(FatalServiceError, match="the learning rate is likely too high"):
         proc.check(time.monotonic())
+
+
+def test_stale_forged_and_scoreless_graph_reports_cannot_break_the_finish_step(tmp_path) -> None:
+    """Found by the live fuzz test: a graph report without scores (here a stale one) entered the
+    history and the finish step's learning curve failed on it (KeyError 'f1'), leaving no summary."""
+    import dataclasses
+
+    import numpy as np
+
+    from proto.codec import encode
+    from proto.messages import GraphReport
+    from services.supervisor.report import plot_learning_curve
+    from services.supervisor.supervisor import Supervisor
+
+    sup = Supervisor(build_config(RunConfig, router_port=7447, run_dir=str(tmp_path), progress=False))
+    n = 3
+    real = GraphReport(kind="cdl", weights_version=5, env_steps=100, updates=10, factor_names=("a", "b", "c"),
+                       cmi=np.zeros((n, n + 1), np.float32), adjacency=np.zeros((n, n + 1), np.uint8), threshold=0.02,
+                       controllable=(), action_relevant=(), action_irrelevant=(), metrics={"f1": 0.5, "accuracy": 0.9},
+                       timestamp=0.0)
+    key = "causeway/run/graph/cdl"
+    sup._on_graph(key, encode(real))
+    sup._on_graph(key, encode(dataclasses.replace(real, weights_version=1, metrics={})))  # stale: ignored
+    sup._on_graph(key, encode(dataclasses.replace(real, weights_version=2**62, metrics={"f1": 1.0})))  # refused
+    assert len(sup.history) == 1 and sup.last_report.weights_version == 5
+    sup._on_graph(key, encode(dataclasses.replace(real, weights_version=6, env_steps=200, metrics={})))  # no scores
+    assert len(sup.history) == 2
+    plot_learning_curve(sup.history, tmp_path / "learning_curve.png")
+    assert (tmp_path / "learning_curve.png").stat().st_size > 1000
