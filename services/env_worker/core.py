@@ -14,7 +14,7 @@ from envs.registry import EnvEntry, env_entry
 from proto.messages import EnvSpec, TransitionBatch, Weights
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.episodes import EpisodeStats
-from services.runtime.accept import VersionGate
+from services.runtime.accept import VersionGate, check_tensor_shapes
 
 if TYPE_CHECKING:
     from causal.rl.policy_weights import Agent
@@ -72,12 +72,20 @@ class PolicyActor:
 
         agent, skills = self.agent, self.skills
         if weights.config_json != self.config_json:
+            check_tensor_shapes(lambda: self._shapes(weights.config_json), weights.tensors, "the policy configuration")
             agent = agent_from_config_json(weights.config_json, self.seed, self.obs_dim)
             skills = self._skill_runner(policy_options(weights.config_json))
         import_policy(agent, weights.tensors)
         self.versions.accept("policy", weights.version)
         self.agent, self.skills, self.config_json, self.version = agent, skills, weights.config_json, weights.version
         return True
+
+    def _shapes(self, config_json: str) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of the tensors a policy of ``config_json`` publishes."""
+        from causal.rl.policy_weights import acting_module, agent_from_config_json
+
+        module = acting_module(agent_from_config_json(config_json, self.seed, self.obs_dim))
+        return {name: tuple(t.shape) for name, t in module.state_dict().items()}
 
     def _skill_runner(self, options: tuple[str, ...]):
         if not options:

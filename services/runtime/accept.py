@@ -73,21 +73,28 @@ def check_weights_config(config_json: str, tensors: Mapping[str, np.ndarray], me
     torch's meta device, which allocates no memory, so a configuration that names large widths is
     refused for the few bytes its message carries, never allocated. ``build``: the config JSON -> a model
     (``causal.methods.model_from_config_json``)."""
-    import torch
-
     config = _parse(config_json)
     if config.get("model") != method:
         raise ValueError(f"weights of method {config.get('model')!r}, this run's is {method!r}")
     if config.get("layout") != json.loads(json.dumps(asdict(layout))):
         raise ValueError(f"weights for another factor layout than this run's ({_short(config.get('layout'))})")
+    check_tensor_shapes(lambda: {name: tuple(p.shape) for name, p in build(config_json).named_parameters()}, tensors,
+                        "the model configuration")
+
+
+def check_tensor_shapes(describe: "Callable[[], Mapping[str, tuple[int, ...]]]", tensors: Mapping[str, np.ndarray],
+                        what: str) -> None:
+    """``ValueError`` unless the names and shapes ``describe()`` gives, run on torch's meta device (it
+    builds a model that allocates nothing), are exactly those of ``tensors``."""
+    import torch
+
     with torch.device("meta"):
-        shapes = {name: tuple(p.shape) for name, p in build(config_json).named_parameters()}
+        shapes = dict(describe())
     carried = {name: tuple(array.shape) for name, array in tensors.items()}
     if shapes != carried:
         differ = sorted(n for n in set(shapes) | set(carried) if shapes.get(n) != carried.get(n))
-        raise ValueError(f"the model configuration describes {sum(int(np.prod(s)) for s in shapes.values()):,} "
-                         f"parameters, the message carries {sum(a.size for a in tensors.values()):,}; they differ "
-                         f"at {', '.join(differ[:3])}")
+        raise ValueError(f"{what} describes {sum(int(np.prod(s)) for s in shapes.values()):,} parameters, the "
+                         f"message carries {sum(a.size for a in tensors.values()):,}; they differ at {', '.join(differ[:3])}")
 
 
 def _parse(config_json: str) -> dict[str, Any]:

@@ -124,3 +124,23 @@ def test_graph_reports_that_jump_are_refused_by_the_learner_and_the_scorer(learn
         with pytest.raises(ProtocolError, match="jumps more than"):
             consumer.apply_graph(report(learner, 3 + MAX_VERSION_STEP + 1))
         assert consumer.graph_version == 3 and consumer.apply_graph(report(learner, 4))
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_policy_weights_naming_other_widths_are_refused_before_the_policy_is_built(algo: str) -> None:
+    from gymnasium import spaces
+
+    from services.env_worker.core import PolicyActor
+    from services.policy_learner.config import PolicyLearnerConfig
+    from services.policy_learner.core import PolicyLearnerCore
+    from tests.services.test_graph_evaluator_core import _manipulation_spec
+
+    spec = _manipulation_spec() if algo == "sac" else EnvWorkerCore(build_config(EnvWorkerConfig, num_objects=3)).spec
+    real = PolicyLearnerCore(PolicyLearnerConfig(algo=algo, hidden=16), spec).weights()
+    space = spaces.Box(-1.0, 1.0, (spec.action_size,)) if algo == "sac" else spaces.Discrete(spec.action_size)
+    actor = PolicyActor(spec.state_dim, 0, space)
+    config = json.loads(real.config_json)
+    config["hidden"] = [8192, 8192]
+    with pytest.raises(ValueError, match="the policy configuration describes .* parameters, the message carries"):
+        actor.load(dataclasses.replace(real, config_json=json.dumps(config)))
+    assert actor.agent is None and actor.load(real) and actor.version == real.version
