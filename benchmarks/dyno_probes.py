@@ -122,7 +122,7 @@ def probes(train: tuple[dict, dict], test: tuple[dict, dict], num_colors: int) -
     return out
 
 
-def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
+def run_seed(seed: int, budget: Budget, split_config: SplitConfig = SplitConfig()) -> dict[str, Any]:
     torch.manual_seed(seed)
     env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
     train = sequences_of(env, seed, budget.train_sequences, budget.length)
@@ -137,13 +137,14 @@ def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
     train_slots = object_slots(model, *train[1:]).view(budget.train_sequences, budget.length, budget.num_objects + 1, -1)
     test_slots = object_slots(model, *test[1:])
     torch.manual_seed(seed)
-    split, random = StaticDynamicSplit(train_slots.shape[-1], SplitConfig()), StaticDynamicSplit(train_slots.shape[-1], SplitConfig())
+    split = StaticDynamicSplit(train_slots.shape[-1], split_config)
+    random = StaticDynamicSplit(train_slots.shape[-1], split_config)
     started = time.perf_counter()
     final = train_split(split, train_slots, budget, seed)
     split.eval()
     rows_train = probe_rows(split, random, train_slots.flatten(0, 1), train[0])
     rows_test = probe_rows(split, random, test_slots, test[0])
-    return {"seed": seed, "autoencoder_mse": ae_loss, "slot_model": slot_record,
+    return {"seed": seed, "autoencoder_mse": ae_loss, "slot_model": slot_record, "split_config": dataclasses.asdict(split_config),
             "split": {"final_losses": final, "train_seconds": time.perf_counter() - started},
             "probes": probes(rows_train, rows_test, env.num_colors)}
 
@@ -164,6 +165,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     for f in dataclasses.fields(Budget):
         p.add_argument(f"--{f.name.replace('_', '-')}", type=int, default=f.default)
+    for name in ("disentangle_weight", "lecam_weight"):
+        p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(SplitConfig(), name))
     p.add_argument("--out", type=Path, default=Path("benchmark-results/dyno/probes.json"))
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -171,7 +174,8 @@ def main(argv: list[str] | None = None) -> None:
     results: list[dict[str, Any]] = []
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for seed in args.seeds:
-        results.append(run_seed(seed, budget))
+        results.append(run_seed(seed, budget, SplitConfig(disentangle_weight=args.disentangle_weight,
+                                                          lecam_weight=args.lecam_weight)))
         args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": results}, indent=1))
     print(table(results))
 
