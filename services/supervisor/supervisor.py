@@ -61,6 +61,9 @@ class Supervisor:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self.report_versions = VersionGate()
+        self.started: set[str] = set()
+        """Names of every process this supervisor started (retired workers too)."""
+        self.strangers: set[tuple[str, str]] = set()
         """Report versions taken into the history: each newer than the last, by a bounded step."""
         self._own_stop = -1.0
         self.pending_scale: queue.Queue[str] = queue.Queue()
@@ -79,7 +82,15 @@ class Supervisor:
     def process(self, name: str, module: str, service_cfg: object) -> ManagedProcess:
         proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log")
         self.processes[name] = proc
+        self.started.add(name)
         return proc
+
+    def started_it(self, stats: ServiceStats) -> bool:
+        """Whether ``stats`` names a process this supervisor started (env-worker i is instance i, every
+        other service instance 0): only those count in the run's progress and budgets."""
+        if stats.service == "env-worker":
+            return f"env-worker-{stats.instance}" in self.started
+        return stats.service in self.started and stats.instance == "0"
 
     def preflight(self) -> None:
         """``ValueError`` if the run cannot start here: ``--device cuda`` without a CUDA device (or with a
@@ -175,6 +186,11 @@ class Supervisor:
             stats = decode(payload, ServiceStats)
         except ProtocolError:
             log.warning("bad stats message on %s", key)
+            return
+        if not self.started_it(stats):
+            if (stats.service, stats.instance) not in self.strangers and len(self.strangers) < 100:
+                self.strangers.add((stats.service, stats.instance))
+                log.warning("stats beats from %s/%s, which this run did not start: ignored", stats.service, stats.instance)
             return
         self._track_policy_version(stats)
         self.progress.on_stats(stats)

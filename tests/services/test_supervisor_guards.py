@@ -168,3 +168,22 @@ def test_stale_forged_and_scoreless_graph_reports_cannot_break_the_finish_step(t
     assert len(sup.history) == 2
     plot_learning_curve(sup.history, tmp_path / "learning_curve.png")
     assert (tmp_path / "learning_curve.png").stat().st_size > 1000
+
+
+def test_stats_beats_of_processes_the_run_did_not_start_do_not_count(tmp_path) -> None:
+    """A beat forged on stats/env-worker/<any> (the env-worker role may publish there) would otherwise
+    add its env steps to the run's total and end the run on its env-step budget."""
+    from proto.codec import encode
+    from proto.messages import ServiceStats
+    from services.supervisor.supervisor import Supervisor
+    from services.supervisor.wiring import service_configs, worker_config
+
+    sup = Supervisor(build_config(RunConfig, router_port=7447, run_dir=str(tmp_path), progress=False, max_env_steps=10_000))
+    sup.process("env-worker-0", "services.env_worker", worker_config(sup.cfg, "", 0))
+    sup.process("dynamics-learner", "services.dynamics_learner", service_configs(sup.cfg, "")["dynamics-learner"])
+    for service, instance, values in (("env-worker", "0", {"env_steps": 300.0}), ("env-worker", "fuzz", {"env_steps": 1e12}),
+                                      ("env-worker", "7", {"env_steps": 1e12}), ("dynamics-learner", "0", {"updates": 5.0}),
+                                      ("dynamics-learner", "1", {"updates": 1e9}), ("graph-evaluator", "0", {"reports": 1.0})):
+        sup._on_stats("k", encode(ServiceStats(service, instance, values)))
+    assert sup.progress.env_steps() == 300 and sup.progress.updates() == 5
+    assert set(sup.progress.stats) == {("env-worker", "0"), ("dynamics-learner", "0")}
