@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from causal.flam_nets import (FSQ, Aggregator, AttentionBlock, Factorizer, ForwardDynamics, FSQAutoencoder,
+from causal.flam_nets import (FSQ, Aggregator, AttentionBlock, BroadcastAggregator, Factorizer, ForwardDynamics, FSQAutoencoder,
                               InverseDynamics, TokenEmbedding, gaussian_kl, posterior_scale)
 from causal.slots import SlotConfig, SlotDecoder, drop_probability, frames_to_tensor
 from proto.settings import doc
@@ -40,6 +40,9 @@ class FLAMConfig:
     iterations: int = doc(3, "slot-attention iterations, each followed by temporal self-attention")
     levels: tuple[int, ...] = doc((5, 5, 5, 5), "FSQ levels per feature channel (d_e = their count)")
     beta_kl: float = doc(1e-3, "beta_KL of eq. 8.6")
+    aggregator: str = doc("cross-attention", "cross-attention: e_t's tokens attend to the predicted slots "
+                                             "(the chapter's); broadcast: the slots alone draw e^_{t+1} "
+                                             "through a spatial-broadcast decoder", choices=("cross-attention", "broadcast"))
     slot_reconstruction: float = doc(0.0, "weight of an added slot-decoder reconstruction of e_t from xi_t "
                                           "(Dyn-O's eq. 7.1 term; 0: eq. 8.6 alone, the chapter's)")
     lr: float = doc(1e-3, "Adam learning rate")
@@ -48,6 +51,8 @@ class FLAMConfig:
     def __post_init__(self) -> None:
         if min(self.num_slots, self.slot_dim, self.action_dim, self.iterations, self.batch_size) < 1:
             raise ValueError("FLAM sizes, iterations and batch size must be positive")
+        if self.aggregator not in ("cross-attention", "broadcast"):
+            raise ValueError(f"aggregator must be 'cross-attention' or 'broadcast', got {self.aggregator!r}")
         if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0) or self.slot_dim % 4:
             raise ValueError("lr must be > 0, beta_kl and slot_reconstruction >= 0 and slot_dim a multiple of 4")
 
@@ -85,7 +90,7 @@ class FLAM(nn.Module):
         self.factorizer = Factorizer(d_e, num_tokens, config.num_slots, d, config.iterations)
         self.idm = InverseDynamics(d, config.action_dim)
         self.fdm = ForwardDynamics(d, config.action_dim)
-        self.aggregator = Aggregator(d_e, num_tokens, d)
+        self.aggregator = (BroadcastAggregator if config.aggregator == "broadcast" else Aggregator)(d_e, num_tokens, d)
         self.slot_decoder = (SlotDecoder(num_tokens, d_e, SlotConfig(slot_dim=d, decoder_hidden=d))
                              if config.slot_reconstruction > 0 else None)
 

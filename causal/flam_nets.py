@@ -70,16 +70,30 @@ class AttentionBlock(nn.Module):
         return x + self.mlp(x)
 
 
+def grid_fourier_features(num_tokens: int) -> torch.Tensor:
+    """``[n, 4 g / 2]``: sin and cos of pi k x and pi k y (k = 1..g/2) of a square grid's token centres."""
+    grid = int(round(num_tokens ** 0.5))
+    if grid * grid != num_tokens:
+        raise ValueError(f"tokens must form a square grid, got {num_tokens}")
+    axis = (torch.arange(grid, dtype=torch.float32) + 0.5) / grid
+    y, x = torch.meshgrid(axis, axis, indexing="ij")
+    angles = torch.pi * torch.arange(1, max(grid // 2, 1) + 1, dtype=torch.float32)
+    coords = torch.stack([x.reshape(-1), y.reshape(-1)], -1)[:, :, None] * angles
+    return torch.cat([coords.sin(), coords.cos()], -1).flatten(1)
+
+
 class TokenEmbedding(nn.Module):
-    """Feature tokens ``[..., n, d_e]`` -> ``[..., n, D]`` with a learned position per token."""
+    """Feature tokens ``[..., n, d_e]`` -> ``[..., n, D]`` plus a position embedding: a learned projection
+    of fixed Fourier features of the token's grid cell (distinct positions from the first update on)."""
 
     def __init__(self, feature_dim: int, num_tokens: int, dim: int) -> None:
         super().__init__()
         self.mlp = nn.Sequential(nn.Linear(feature_dim, dim), nn.ReLU(), nn.Linear(dim, dim))
-        self.position = nn.Parameter(torch.randn(num_tokens, dim) * 0.02)
+        self.register_buffer("fourier", grid_fourier_features(num_tokens), persistent=False)
+        self.position = nn.Linear(self.fourier.shape[1], dim)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.mlp(features) + self.position
+        return self.mlp(features) + self.position(self.fourier)
 
 
 class Factorizer(nn.Module):
@@ -168,6 +182,23 @@ class Aggregator(nn.Module):
 
     def forward(self, features: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
         return features + self.out(self.block(self.embed(features), slots))
+
+
+class BroadcastAggregator(nn.Module):
+    """A spatial-broadcast aggregator: each predicted slot, plus the Fourier position of each token,
+    goes through a per-token MLP to features and an alpha logit; the alphas (a softmax over slots)
+    mix the slots' features into e^_{t+1}. The slots draw the whole next frame (no e_t)."""
+
+    def __init__(self, feature_dim: int, num_tokens: int, dim: int) -> None:
+        super().__init__()
+        self.register_buffer("fourier", grid_fourier_features(num_tokens), persistent=False)
+        self.position = nn.Linear(self.fourier.shape[1], dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, dim), nn.ReLU(), nn.Linear(dim, dim), nn.ReLU(),
+                                 nn.Linear(dim, feature_dim + 1))
+
+    def forward(self, features: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        out = self.mlp(slots[:, :, None, :] + self.position(self.fourier))
+        return (out[..., -1].softmax(dim=1)[..., None] * out[..., :-1]).sum(dim=1)
 
 
 def posterior_scale(dim: int, action_dim: int, initial_log_sigma: float = -3.0) -> nn.Linear:

@@ -8,7 +8,7 @@ import torch
 from torch.distributions import Normal, kl_divergence
 
 from causal.flam import FLAM, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, lam_loss, psnr, rollout
-from causal.flam_nets import FSQ, FSQAutoencoder, gaussian_kl
+from causal.flam_nets import FSQ, FSQAutoencoder, gaussian_kl, grid_fourier_features
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -179,3 +179,22 @@ def test_slot_reconstruction_term_is_added_when_weighted() -> None:
     loss, terms = lam_loss(features, out, beta_kl=0.0, slot_reconstruction=0.5)
     assert float(loss.detach()) == pytest.approx(terms["prediction_sse"] + 0.5 * terms["slot_reconstruction_sse"], rel=1e-5)
     assert _flam()(features).reconstructed is None
+
+
+def test_fourier_positions_are_distinct_and_the_broadcast_aggregator_mixes_slots() -> None:
+    fourier = grid_fourier_features(16)
+    assert fourier.shape == (16, 8)
+    distances = torch.cdist(fourier, fourier) + torch.eye(16)
+    assert distances.min() > 0.1
+    with pytest.raises(ValueError, match="square"):
+        grid_fourier_features(15)
+    torch.manual_seed(0)
+    model = FLAM(FLAMConfig(**{**CONFIG.__dict__, "aggregator": "broadcast"}), TOKENS).eval()
+    features = _features(b=2, t=3)
+    assert model(features, sample=False).predicted.shape == (2, 2, TOKENS, 3)
+    slots = torch.randn(4, CONFIG.num_slots, CONFIG.slot_dim)
+    one_slot = model.aggregator(features[0, :4], slots[:, :1])
+    out = model.aggregator.mlp(slots[:, :1, None, :] + model.aggregator.position(model.aggregator.fourier))
+    torch.testing.assert_close(one_slot, out[:, 0, :, :-1])
+    with pytest.raises(ValueError, match="aggregator"):
+        FLAMConfig(aggregator="sum")

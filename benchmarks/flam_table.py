@@ -1,0 +1,196 @@
+"""FLAM's Tables 8.1 and 8.2 analogues on MultiGrid agents (chapter 8): 10-step prediction PSNR of
+FLAM, the monolithic latent action model of equal latent capacity and the FSQ autoencoder's
+reconstruction ceiling, on unseen seeds; DCI of the latent actions against the agents' true actions.
+
+    python -m benchmarks.flam_table --seed 0
+
+Action-free videos of a uniformly random policy; the autoencoder is trained first and frozen
+(eq. 8.1), then each latent action model on short clips of its features (eq. 8.6). Prediction: the
+chapter's protocol (latent actions inferred from the unseen true frames, predictions fed back).
+DCI: the posterior means of the latent actions of each factor (FLAM: a slot; monolithic: a block of
+``d_a`` channels of its one latent) against the 4 agents' actions, by linear probes (causal/dci.py).
+One torch thread; the defaults take about 10 minutes idle (budget 30 on a loaded 2-core machine).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from causal.dci import dci
+from causal.flam import FLAM, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, fit_autoencoder, psnr, rollout
+from causal.flam_nets import FSQAutoencoder
+from causal.slots import frames_to_tensor
+from envs.multigrid_agents import MultiGridAgentsEnv, record_videos
+
+
+@dataclass(frozen=True)
+class Args:
+    seed: int
+    episodes: int
+    episode_steps: int
+    eval_episodes: int
+    horizon: int
+    clip: int
+    ae_updates: int
+    updates: int
+    slot_dim: int
+    action_dim: int
+    beta_kl: float
+    variant: str
+    models: tuple[str, ...]
+    lr: float
+    num_slots: int
+    mask_prior: str
+    aggregator: str
+    slot_reconstruction: float
+    out: str
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--episodes", type=int, default=200, help="training videos")
+    p.add_argument("--episode-steps", type=int, default=20, help="steps per training video")
+    p.add_argument("--eval-episodes", type=int, default=100, help="unseen videos for PSNR and DCI")
+    p.add_argument("--horizon", type=int, default=10, help="prediction steps")
+    p.add_argument("--clip", type=int, default=4, help="frames per training clip")
+    p.add_argument("--ae-updates", type=int, default=300, help="FSQ autoencoder updates (eq. 8.1)")
+    p.add_argument("--updates", type=int, default=1000, help="updates of each latent action model")
+    p.add_argument("--slot-dim", type=int, default=32)
+    p.add_argument("--action-dim", type=int, default=8, help="d_a per slot; the monolithic latent is K * d_a")
+    p.add_argument("--beta-kl", type=float, default=1e-3)
+    p.add_argument("--variant", choices=("independent", "correlated"), default="independent",
+                   help="correlated: agent 1 repeats agent 0 (section 8.3), FLAM alone with K = 3")
+    p.add_argument("--models", nargs="+", choices=("flam", "monolithic"), default=["flam", "monolithic"])
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--num-slots", type=int, default=0,
+                   help="K (0: one per independently acting agent plus one for the background)")
+    p.add_argument("--aggregator", choices=("cross-attention", "broadcast"), default="cross-attention")
+    p.add_argument("--mask-prior", choices=("none", "annealed"), default="none",
+                   help="FLAM: Dyn-O's annealed mask prior from the renderer's masks in training (never at evaluation)")
+    p.add_argument("--slot-reconstruction", type=float, default=0.0,
+                   help="FLAM: weight of an added reconstruction of e_t from its slots (0: eq. 8.6 alone)")
+    p.add_argument("--out", default="", help="write the results as JSON here")
+    args = vars(p.parse_args(argv))
+    return Args(**{**args, "models": tuple(args["models"])})
+
+
+def train_lam(model: nn.Module, features: torch.Tensor, labels: torch.Tensor, args: Args, log: str) -> float:
+    """Train on random clips of ``args.clip`` frames of the training features (token labels
+    ``[E, T, n]`` for the mask prior); seconds taken."""
+    prior = args.mask_prior if isinstance(model, FLAM) else "none"
+    trainer, start = LAMTrainer(model, seed=args.seed, mask_prior=prior, total_updates=args.updates), time.time()
+    generator = torch.Generator().manual_seed(args.seed)
+    episodes, steps = features.shape[:2]
+    for update in range(args.updates):
+        e = torch.randint(episodes, (model.config.batch_size,), generator=generator)
+        t = torch.randint(steps - args.clip + 1, (model.config.batch_size,), generator=generator)
+        frames = t[:, None] + torch.arange(args.clip)
+        terms = trainer.update(features[e[:, None], frames], labels[e[:, None], frames])
+        if update % 200 == 0 or update == args.updates - 1:
+            print(f"  {log} update {update}: {json.dumps({k: round(v, 5) for k, v in terms.items()})}", flush=True)
+    return time.time() - start
+
+
+def evaluate(model: nn.Module, autoencoder: FSQAutoencoder, features: torch.Tensor, frames: torch.Tensor,
+             actions: torch.Tensor, num_slots: int) -> dict[str, float]:
+    """10-step PSNR (mean over clips) and DCI of the latent actions' posterior means."""
+    model.eval()
+    grid = frames.shape[2] // 4
+    with torch.no_grad():
+        predicted = rollout(model, features, autoencoder.fsq)
+        images = autoencoder.decode(predicted.flatten(0, 1), grid).view(frames.shape[0], -1, 3, *frames.shape[2:4])
+        target = frames_to_tensor(frames[:, 1:].flatten(0, 1)).view_as(images)
+        codes = model.infer(features).flatten(0, 1)
+    codes = codes.reshape(len(codes), num_slots, -1)
+    scores = dci(codes, actions.flatten(0, 1), classes=5)
+    return {"psnr": float(psnr(images, target).mean()), "dci_d": scores.disentanglement,
+            "dci_c": scores.completeness, "dci_i": scores.informativeness}
+
+
+def token_labels(labels: np.ndarray) -> torch.Tensor:
+    """Each feature token's segment ``[E, T, n]`` (0 background, ``1 + i`` agent ``i``; one 4x4 token per cell)."""
+    return torch.from_numpy(labels[:, :, ::4, ::4].reshape(labels.shape[0], labels.shape[1], -1).copy())
+
+
+def agent_slots(attention: torch.Tensor, labels: torch.Tensor, num_agents: int) -> torch.Tensor:
+    """int ``[B, T, N]``: the slot holding most of agent ``i``'s attention in each frame (labels
+    ``[B, T, H, W]`` at one 4x4 token per grid cell)."""
+    tokens = labels[:, :, ::4, ::4].flatten(2).long()
+    owned = torch.stack([(tokens == 1 + i).float() for i in range(num_agents)], dim=2)
+    return torch.einsum("btkn,btin->btik", attention, owned).argmax(-1)
+
+
+def slot_sharing(slots: torch.Tensor) -> dict[str, float]:
+    """Shares of frames where agents 0 and 1 share a slot, and where every other agent has its own."""
+    same = slots[..., 0] == slots[..., 1]
+    others = slots[..., [0] + list(range(2, slots.shape[-1]))]
+    distinct = torch.stack([(others[..., i] != others[..., j]) for i in range(others.shape[-1])
+                            for j in range(i + 1, others.shape[-1])], -1).all(-1)
+    all_distinct = torch.stack([(slots[..., i] != slots[..., j]) for i in range(slots.shape[-1])
+                                for j in range(i + 1, slots.shape[-1])], -1).all(-1)
+    return {"agents_0_1_share_slot": float(same.float().mean()),
+            "grouped_as_actions": float((same & distinct).float().mean()),
+            "every_agent_own_slot": float(all_distinct.float().mean())}
+
+
+def main(args: Args) -> dict[str, dict[str, float]]:
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    env = MultiGridAgentsEnv(correlated=args.variant == "correlated")
+    train = record_videos(env, args.episodes, args.episode_steps, seed=args.seed * 100_000)
+    test = record_videos(env, args.eval_episodes, args.horizon, seed=args.seed * 100_000 + 50_000)
+    train_frames, test_frames = torch.from_numpy(train["frames"]), torch.from_numpy(test["frames"])
+    num_slots = args.num_slots or (env.num_agents - 1 if env.correlated else env.num_agents) + 1
+    config = FLAMConfig(num_slots=num_slots, slot_dim=args.slot_dim, action_dim=args.action_dim,
+                        beta_kl=args.beta_kl, lr=args.lr, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator)
+    autoencoder = FSQAutoencoder(config.levels)
+    start = time.time()
+    fit_autoencoder(autoencoder, train_frames.flatten(0, 1), args.ae_updates, seed=args.seed)
+    print(f"autoencoder: {time.time() - start:.0f} s", flush=True)
+    train_features, test_features = encode_clips(autoencoder, train_frames), encode_clips(autoencoder, test_frames)
+    grid = env.frame_size // 4
+    with torch.no_grad():
+        recon = autoencoder(frames_to_tensor(test_frames[:, 1:].flatten(0, 1)))
+    target = frames_to_tensor(test_frames[:, 1:].flatten(0, 1))
+    shape = (args.eval_episodes, args.horizon, 3, env.frame_size, env.frame_size)
+    results = {"recon": {"psnr": float(psnr(recon.view(shape), target.view(shape)).mean())}}
+    copy = (train_features[:, 1:] - train_features[:, :-1]).pow(2).flatten(2).sum(-1).mean()
+    print(f"copy-last-frame prediction_sse on the training videos: {float(copy):.4f}", flush=True)
+    actions = torch.from_numpy(test["actions"])
+    models = {"flam": FLAM, "monolithic": MonolithicLAM}
+    for name in ("flam",) if env.correlated else args.models:
+        cls = models[name]
+        torch.manual_seed(args.seed)
+        model = cls(replace(config), grid * grid)
+        seconds = train_lam(model, train_features, token_labels(train["labels"]), args, name)
+        results[name] = {**evaluate(model, autoencoder, test_features, test_frames, actions, config.num_slots),
+                         "train_seconds": round(seconds, 1)}
+        if isinstance(model, FLAM):
+            with torch.no_grad():
+                attention = model.factorizer(test_features)[1]
+            results[name].update(slot_sharing(agent_slots(attention, torch.from_numpy(test["labels"]), env.num_agents)))
+        print(f"{name}: {json.dumps(results[name])}", flush=True)
+    print_table(results, args)
+    if args.out:
+        Path(args.out).write_text(json.dumps({"args": vars(args), "results": results}, indent=2))
+    return results
+
+
+def print_table(results: dict[str, dict[str, float]], args: Args) -> None:
+    print(f"\n{args.variant}: {args.horizon}-step prediction on {args.eval_episodes} unseen videos, seed {args.seed}")
+    print("| model | PSNR (dB) | DCI D | DCI C | DCI I |\n|---|---|---|---|---|")
+    for name, row in results.items():
+        cells = [f"{row[k]:.2f}" if k in row else "-" for k in ("psnr", "dci_d", "dci_c", "dci_i")]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main(parse_args())
