@@ -212,8 +212,8 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
         right.bar(np.arange(len(conditions)) + k * width, [np.mean(v) for v in values], width,
                   yerr=[np.std(v) / max(len(v) ** 0.5, 1) for v in values], label=setting)
     right.set_xticks(np.arange(len(conditions)) + width, conditions, fontsize=8)
-    right.set(ylabel="success rate (mean ± s.e.)", ylim=(0, 1.05))
-    right.legend(fontsize=8)
+    right.set(ylabel="success rate (mean ± s.e.)", ylim=(0, 1.3))
+    right.legend(fontsize=8, ncol=len(SETTINGS), loc="upper center")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
