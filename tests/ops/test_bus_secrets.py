@@ -72,3 +72,18 @@ def test_compose_mode_keeps_the_directory_private_and_the_files_readable_in_cont
         with pytest.raises(SystemExit) as refused:
             cli_main(["bus-secrets", "--run", "compose", "--out", str(tmp_path / writable), "--file-mode", writable])
         assert refused.value.code == 2 and not (tmp_path / writable).exists()
+
+
+@pytest.mark.integration
+def test_the_routers_own_admin_space_still_answers_its_local_session(tmp_path: Path) -> None:
+    """The compose router's healthcheck asks zenohd's REST plugin, which queries the admin space through
+    a session inside the router, not a client link: the access control (deny by default) does not
+    apply to it. Checked with the router's own session, the same kind of session."""
+    out = generate(tmp_path / "bus")
+    config = zenoh.Config.from_file(str(out / "router.json5"))
+    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{free_tcp_port()}"]))
+    config.insert_json5("plugins", "{}")
+    config.insert_json5("adminspace/enabled", "true")  # zenohd turns it on whatever the file says
+    with zenoh.open(config) as router:
+        replies = [str(r.ok.key_expr) for r in router.get("@/*/router", timeout=5) if r.ok is not None]
+        assert replies == [f"@/{router.zid()}/router"]
