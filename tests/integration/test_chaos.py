@@ -270,3 +270,54 @@ def test_a_killed_supervisor_takes_its_services_with_it_and_the_run_resumes(tmp_
         {"services_gone_s": round(gone_s, 1), "resumed_at_update": resumed.values["resumed_at_update"]}))
     print(f"services gone {gone_s:.1f} s after the supervisor's SIGKILL; resumed at update "
           f"{resumed.values['resumed_at_update']:.0f}")
+
+
+def rss_mib(pid: int) -> int:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line for line in status.splitlines() if line.startswith("VmRSS")).split()[1]) // 1024
+
+
+def test_a_stalled_learner_stalls_nothing_else_and_its_memory_stays_bounded(tmp_path: Path) -> None:
+    """The learner SIGSTOPped for 20 s under an unthrottled worker: the worker keeps stepping (its
+    publications do not block on the stalled subscriber), the learner's memory does not grow with the
+    backlog (its inbox is bounded; what overflows is dropped and counted), and it trains again at once."""
+    run_dir, port, dashboard = tmp_path / "run", free_tcp_port(), free_tcp_port()
+    metrics = 25000 + (os.getpid() % 1500) * 20
+    cmd = command(run_dir, port, metrics, dashboard, policy=False)
+    cmd[cmd.index("--worker-max-steps-per-second") + 1] = "0"
+    stack = start(cmd)
+    bus = None
+    try:
+        wait_for(lambda: "dynamics-learner" in table(run_dir).get("processes", {}), 90, "the learner started")
+        bus = Bus(f"tcp/127.0.0.1:{port}", run_dir, "run")
+        wait_for(lambda: bus.seen.reports, 240, "a graph report")
+        pid = table(run_dir)["processes"]["dynamics-learner"]["pid"]
+        steps, before = bus.seen.latest("env-worker", "env_steps"), rss_mib(pid)
+        os.kill(pid, signal.SIGSTOP)
+        stopped_at = time.time()
+        try:
+            wait_for(lambda: time.time() - stopped_at > 20 and bus.seen.latest("env-worker", "env_steps") > steps + 10_000,
+                     60, "the worker stepping on while the learner is stopped")
+            stepped = bus.seen.latest("env-worker", "env_steps") - steps
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        resumed_at = time.time()
+        wait_for(lambda: bus.seen.rising("dynamics-learner", "updates", resumed_at), 120, "the learner training again")
+        back_s = time.time() - resumed_at
+        time.sleep(5)  # the backlog it was sent, drained
+        after = rss_mib(pid)
+        body = urllib.request.urlopen(f"http://127.0.0.1:{metrics + 1}/metrics", timeout=5).read().decode()
+        drops = sum(float(line.rsplit(" ", 1)[1]) for line in body.splitlines()
+                    if line.startswith('causeway_messages_dropped_total{reason="transitions_'))
+        assert table(run_dir)["processes"]["dynamics-learner"]["restarts"] == 0
+        assert after - before < 150, (before, after)
+    finally:
+        if bus is not None:
+            bus.close()
+        out = stop(stack, run_dir)
+    assert stack.returncode == 0, out
+    figures = {"stalled_s": 20, "worker_steps_meanwhile": int(stepped), "learner_rss_mib": [before, after],
+               "learner_training_again_s": round(back_s, 1), "transitions_batches_dropped_counted": int(drops)}
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    (ARTIFACTS / "stall.json").write_text(json.dumps(figures))
+    print(json.dumps(figures))
