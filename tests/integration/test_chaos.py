@@ -6,8 +6,9 @@ kind is killed in turn; the supervisor must restart it, the run must go on (env 
 updates and graph reports keep coming), a restarted learner must resume from its checkpoint with
 versions above any it published and its update count not overcounted, and the run must end with a
 summary. The supervisor killed: every service dies with it (PR_SET_PDEATHSIG), nothing is left, and
-the same command on the same run directory resumes. Recovery times and transitions lost are written
-to ``test-artifacts/chaos/figures.json`` (the table in docs/operating.md).
+the same command on the same run directory resumes. A stalled learner (SIGSTOP) stalls nothing else
+and its memory stays bounded. Recovery times and transitions lost are written to
+``test-artifacts/chaos/`` (the table in docs/operating.md).
 """
 from __future__ import annotations
 
