@@ -9,7 +9,9 @@ Action-free videos of a uniformly random policy; the autoencoder is trained firs
 chapter's protocol (latent actions inferred from the unseen true frames, predictions fed back).
 DCI: the posterior means of the latent actions of each factor (FLAM: a slot; monolithic: a block of
 ``d_a`` channels of its one latent) against the 4 agents' actions, by linear probes (causal/dci.py).
-One torch thread; the defaults take about 10 minutes idle (budget 30 on a loaded 2-core machine).
+One torch thread. Budget: results.md's run (1,200 updates per model) took 4.5 min per autoencoder,
+13 min of FLAM training and 15 of monolithic training, about 22 minutes of wall time with the models
+in parallel processes on a loaded 2-core machine (load average 12-15); under 30 minutes either way.
 """
 from __future__ import annotations
 
