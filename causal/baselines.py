@@ -26,9 +26,12 @@ from causal.rl.networks import mlp
 class MonolithicModel(nn.Module):
     """One MLP (``depth`` hidden layers of ``width``) from all inputs to all next-factor distributions."""
 
-    # CDL's likelihood and class mask read only ``codec``, ``layout``, ``cfg`` and ``cat_class_mask``,
-    # which this model holds too: borrowing them keeps one definition of the output format.
+    # CDL's likelihood (with the targets and scoring it is made of) and class mask read only ``codec``,
+    # ``layout``, ``cfg`` and ``cat_class_mask``, which this model holds too: borrowing them keeps one
+    # definition of the output format.
     _likelihood = CDLModel.nll
+    _targets = CDLModel._targets
+    _nll_of = CDLModel._nll_of
     _class_mask = CDLModel._class_mask
 
     def __init__(self, layout: FactorLayout, width: int, depth: int = 3, cfg: CDLConfig = CDLConfig()) -> None:
