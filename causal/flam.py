@@ -26,6 +26,7 @@ from torch import nn
 
 from causal.flam_nets import (FSQ, Aggregator, AttentionBlock, BroadcastAggregator, Factorizer, ForwardDynamics, FSQAutoencoder,
                               InverseDynamics, TokenEmbedding, gaussian_kl, posterior_scale)
+from causal import slots
 from causal.slots import SlotConfig, SlotDecoder, drop_probability, frames_to_tensor
 from proto.settings import doc
 
@@ -224,18 +225,9 @@ class LAMTrainer:
 
 def fit_autoencoder(autoencoder: FSQAutoencoder, frames: torch.Tensor, updates: int, batch_size: int = 32,
                     lr: float = 2e-3, seed: int = 0) -> float:
-    """Eq. 8.1 on frames (uint8 ``[N, H, W, 3]``), then freeze; the last reconstruction loss."""
-    generator = torch.Generator().manual_seed(seed)
-    optimizer = torch.optim.Adam(autoencoder.parameters(), lr=lr)
-    loss = torch.tensor(float("nan"))
-    for _ in range(updates):
-        images = frames_to_tensor(frames[torch.randint(len(frames), (batch_size,), generator=generator)])
-        loss = F.mse_loss(autoencoder(images), images)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-    autoencoder.requires_grad_(False)
-    return float(loss.detach())
+    """Eq. 8.1 on frames (uint8 ``[N, H, W, 3]``), then freeze; the last reconstruction loss (Dyn-O's
+    reconstruction loop, :func:`causal.slots.fit_autoencoder`, at FLAM's learning rate)."""
+    return slots.fit_autoencoder(autoencoder, frames, updates, batch_size=batch_size, lr=lr, seed=seed)
 
 
 @torch.no_grad()

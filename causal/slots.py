@@ -229,9 +229,11 @@ class SlotTrainer:
         return {"loss": float(loss.detach()), **terms, "drop_probability": drop_probability(self.updates, self.total_updates)}
 
 
-def fit_autoencoder(autoencoder: FrameAutoencoder, frames: torch.Tensor, updates: int, batch_size: int = 32,
+def fit_autoencoder(autoencoder: nn.Module, frames: torch.Tensor, updates: int, batch_size: int = 32,
                     lr: float = 1e-3, seed: int = 0) -> float:
-    """Train Enc/Dec on frames (uint8 ``[N, H, W, 3]``) by reconstruction, then freeze them; the last loss."""
+    """Train Enc/Dec on frames (uint8 ``[N, H, W, 3]``) by reconstruction, then freeze them; the last loss.
+    Any autoencoder mapping images to their reconstruction (Dyn-O's :class:`FrameAutoencoder`, FLAM's
+    FSQ one)."""
     generator = torch.Generator().manual_seed(seed)
     optimizer = torch.optim.Adam(autoencoder.parameters(), lr=lr)
     loss = torch.tensor(float("nan"))
