@@ -80,29 +80,28 @@ class TwinQ(nn.Module):
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
 
 
-class SACAgent:
-    """SAC; implements :class:`causal.rl.base.Agent` (``update`` takes a :class:`ReplayBatch`).
+class SoftActorCritic:
+    """What both SACs share: twin critics with Polyak targets, automatic temperature, the update order
+    (critics, then actor and temperature, then Polyak), device moves and checkpoints.
 
-    Parameters are initialised from ``torch.manual_seed(seed)``; action noise uses a private
-    generator seeded with ``seed``.
+    A subclass builds ``actor`` and ``critic`` (and ``input_mask``), calls :meth:`_init_learning`, and
+    supplies the three places where continuous and categorical SAC differ: the soft value of the next
+    observation, the critics' value of the taken action, and the actor's loss with the per-sample
+    entropy the temperature is tuned on.
     """
 
-    def __init__(self, obs_dim: int, action: ActionSpec, cfg: SACConfig = SACConfig(), seed: int = 0,
-                 input_mask: np.ndarray | Sequence[bool] | None = None) -> None:
-        if action.kind != "continuous":
-            raise ValueError("SAC here is for continuous actions")
-        torch.manual_seed(seed)
-        self.cfg, self.action = cfg, action
-        self.input_mask = InputMask(obs_dim, input_mask)
-        self.actor = SquashedGaussianActor(obs_dim, action, cfg, self.input_mask)
-        self.critic = TwinQ(obs_dim, action, cfg, self.input_mask)
+    cfg: SACConfig
+    actor: nn.Module
+    critic: nn.Module
+
+    def _init_learning(self, target_entropy: float) -> None:
+        cfg = self.cfg
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = torch.tensor(math.log(cfg.init_alpha), requires_grad=True)
-        self.target_entropy = -float(action.size) if cfg.target_entropy is None else cfg.target_entropy
+        self.target_entropy = target_entropy if cfg.target_entropy is None else cfg.target_entropy
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.lr)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.lr)
-        self.generator = torch.Generator().manual_seed(seed)
         self.device = torch.device("cpu")
         self.version = 0
 
@@ -119,6 +118,88 @@ class SACAgent:
     def alpha(self) -> float:
         return self.log_alpha.detach().exp().item()
 
+    def update(self, batch: ReplayBatch) -> dict[str, float]:
+        """One gradient step each for the critics, the actor and the temperature; then Polyak."""
+        batch = on_device(batch, self.device)
+        stats = self._critic_step(batch)
+        stats.update(self._actor_and_alpha_step(batch.obs))
+        with torch.no_grad():
+            for target, source in zip(self.target_critic.parameters(), self.critic.parameters()):
+                target.lerp_(source, self.cfg.tau)
+        self.version += 1
+        return stats
+
+    def _soft_value(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """``V(s') = E_a' [min Q_target(s', a') - alpha log pi(a' | s')]``, ``[B]`` (under no_grad)."""
+        raise NotImplementedError
+
+    def _taken_q(self, batch: ReplayBatch) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both critics' values of the batch's actions, ``[B]`` each."""
+        raise NotImplementedError
+
+    def _actor_loss(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The actor's loss and the per-sample entropy (estimate) the temperature is tuned on."""
+        raise NotImplementedError
+
+    def _critic_step(self, batch: ReplayBatch) -> dict[str, float]:
+        with torch.no_grad():
+            target = batch.rewards + self.cfg.gamma * (1.0 - batch.terminated) * self._soft_value(batch.next_obs)
+        q1, q2 = self._taken_q(batch)
+        loss = 0.5 * ((q1 - target).square().mean() + (q2 - target).square().mean())
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.critic_optimizer.step()
+        return {"critic_loss": loss.item(), "q_mean": q1.mean().item()}
+
+    def _actor_and_alpha_step(self, obs: torch.Tensor) -> dict[str, float]:
+        actor_loss, entropy = self._actor_loss(obs)
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_optimizer.step()
+        entropy = entropy.detach()
+        alpha_loss = (self.log_alpha * (entropy - self.target_entropy)).mean()
+        self.alpha_optimizer.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_optimizer.step()
+        return {"actor_loss": actor_loss.item(), "alpha": self.alpha, "entropy": entropy.mean().item()}
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, optimisers, temperature, sampling generator and version."""
+        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+                "target_critic": self.target_critic.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
+                "actor_optimizer": self.actor_optimizer.state_dict(),
+                "critic_optimizer": self.critic_optimizer.state_dict(),
+                "alpha_optimizer": self.alpha_optimizer.state_dict(),
+                "generator": self.generator.get_state(), "version": self.version}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name in ("actor", "critic", "target_critic", "actor_optimizer", "critic_optimizer", "alpha_optimizer"):
+            getattr(self, name).load_state_dict(state[name])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.generator.set_state(state["generator"])
+        self.version = int(state["version"])
+
+
+class SACAgent(SoftActorCritic):
+    """SAC; implements :class:`causal.rl.base.Agent` (``update`` takes a :class:`ReplayBatch`).
+
+    Parameters are initialised from ``torch.manual_seed(seed)``; action noise uses a private
+    generator seeded with ``seed``.
+    """
+
+    def __init__(self, obs_dim: int, action: ActionSpec, cfg: SACConfig = SACConfig(), seed: int = 0,
+                 input_mask: np.ndarray | Sequence[bool] | None = None) -> None:
+        if action.kind != "continuous":
+            raise ValueError("SAC here is for continuous actions")
+        torch.manual_seed(seed)
+        self.cfg, self.action = cfg, action
+        self.input_mask = InputMask(obs_dim, input_mask)
+        self.actor = SquashedGaussianActor(obs_dim, action, cfg, self.input_mask)
+        self.critic = TwinQ(obs_dim, action, cfg, self.input_mask)
+        self._init_learning(target_entropy=-float(action.size))
+        self.generator = torch.Generator().manual_seed(seed)
+
     def set_input_mask(self, mask: np.ndarray | Sequence[bool] | None) -> None:
         """Apply a new abstraction to actor and critics (None switches masking off)."""
         self.input_mask.set(mask)
@@ -131,61 +212,17 @@ class SACAgent:
         actions = self.actor(x.to(self.device), deterministic, self.generator)[0].cpu().numpy()
         return actions[0] if single else actions
 
-    def update(self, batch: ReplayBatch) -> dict[str, float]:
-        """One gradient step each for the critics, the actor and the temperature; then Polyak."""
-        batch = on_device(batch, self.device)
-        stats = self._critic_step(batch)
-        stats.update(self._actor_and_alpha_step(batch.obs))
-        with torch.no_grad():
-            for target, source in zip(self.target_critic.parameters(), self.critic.parameters()):
-                target.lerp_(source, self.cfg.tau)
-        self.version += 1
-        return stats
+    def _soft_value(self, next_obs: torch.Tensor) -> torch.Tensor:
+        next_actions, next_log_probs = self.actor(next_obs, generator=self.generator)
+        next_q = torch.minimum(*self.target_critic(next_obs, next_actions))
+        return next_q - self.log_alpha.exp() * next_log_probs
 
-    def _critic_step(self, batch: ReplayBatch) -> dict[str, float]:
-        with torch.no_grad():
-            next_actions, next_log_probs = self.actor(batch.next_obs, generator=self.generator)
-            next_q = torch.minimum(*self.target_critic(batch.next_obs, next_actions))
-            soft = next_q - self.log_alpha.exp() * next_log_probs
-            target = batch.rewards + self.cfg.gamma * (1.0 - batch.terminated) * soft
-        q1, q2 = self.critic(batch.obs, batch.actions)
-        loss = 0.5 * ((q1 - target).square().mean() + (q2 - target).square().mean())
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.critic_optimizer.step()
-        return {"critic_loss": loss.item(), "q_mean": q1.mean().item()}
+    def _taken_q(self, batch: ReplayBatch) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.critic(batch.obs, batch.actions)
 
-    def _actor_and_alpha_step(self, obs: torch.Tensor) -> dict[str, float]:
+    def _actor_loss(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         actions, log_probs = self.actor(obs, generator=self.generator)
         self.critic.requires_grad_(False)  # the actor's loss must not spend time on critic gradients
         q = torch.minimum(*self.critic(obs, actions))
         self.critic.requires_grad_(True)
-        actor_loss = (self.log_alpha.exp().detach() * log_probs - q).mean()
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        self.actor_optimizer.step()
-        alpha_loss = -(self.log_alpha * (log_probs.detach() + self.target_entropy)).mean()
-        self.alpha_optimizer.zero_grad(set_to_none=True)
-        alpha_loss.backward()
-        self.alpha_optimizer.step()
-        return {"actor_loss": actor_loss.item(), "alpha": self.alpha, "entropy": (-log_probs.mean()).item()}
-
-    def state_dict(self) -> dict[str, Any]:
-        """Networks, optimisers, temperature, noise generator and version."""
-        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
-                "target_critic": self.target_critic.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
-                "actor_optimizer": self.actor_optimizer.state_dict(),
-                "critic_optimizer": self.critic_optimizer.state_dict(),
-                "alpha_optimizer": self.alpha_optimizer.state_dict(),
-                "generator": self.generator.get_state(), "version": self.version}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.target_critic.load_state_dict(state["target_critic"])
-        with torch.no_grad():
-            self.log_alpha.copy_(state["log_alpha"])
-        for name in ("actor_optimizer", "critic_optimizer", "alpha_optimizer"):
-            getattr(self, name).load_state_dict(state[name])
-        self.generator.set_state(state["generator"])
-        self.version = int(state["version"])
+        return (self.log_alpha.exp().detach() * log_probs - q).mean(), -log_probs

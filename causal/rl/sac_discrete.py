@@ -10,9 +10,8 @@ which is how CBM's policy sees only its task abstraction on an environment with 
 """
 from __future__ import annotations
 
-import copy
 import math
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -20,10 +19,10 @@ import torch.nn.functional as F
 
 from causal.rl.base import ActionSpec, ReplayBatch, as_batch
 from causal.rl.networks import InputMask, mlp
-from causal.rl.sac import SACConfig
+from causal.rl.sac import SACConfig, SoftActorCritic
 
 
-class DiscreteSACAgent:
+class DiscreteSACAgent(SoftActorCritic):
     """SAC over ``action.size`` categories; implements :class:`causal.rl.base.Agent`. ``act`` returns
     category indices; ``update`` reads the index from the first column of ``batch.actions``.
     Parameters come from ``torch.manual_seed(seed)``, action sampling from a generator seeded ``seed``."""
@@ -37,19 +36,8 @@ class DiscreteSACAgent:
         self.input_mask = InputMask(obs_dim, input_mask)
         self.actor = mlp(obs_dim, cfg.hidden, action.size)
         self.critic = torch.nn.ModuleList([mlp(obs_dim, cfg.hidden, action.size) for _ in range(2)])
-        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
-        self.log_alpha = torch.tensor(math.log(cfg.init_alpha), requires_grad=True)
-        default_target = 0.5 * math.log(action.size)
-        self.target_entropy = default_target if cfg.target_entropy is None else cfg.target_entropy
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.lr)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.lr)
+        self._init_learning(target_entropy=0.5 * math.log(action.size))
         self.generator = torch.Generator().manual_seed(seed)
-        self.version = 0
-
-    @property
-    def alpha(self) -> float:
-        return self.log_alpha.detach().exp().item()
 
     def set_input_mask(self, mask: np.ndarray | Sequence[bool] | None) -> None:
         """Apply a new abstraction to the actor and the critics (None switches masking off)."""
@@ -68,67 +56,27 @@ class DiscreteSACAgent:
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """Category indices ``[B]`` for ``[B, obs_dim]`` observations (a scalar array for one)."""
         x, single = as_batch(obs)
-        log_pi = self.log_policy(x)
+        log_pi = self.log_policy(x.to(self.device))
         if deterministic:
             actions = log_pi.argmax(-1)
         else:
-            actions = torch.multinomial(log_pi.exp(), 1, generator=self.generator).squeeze(-1)
-        out = actions.numpy()
+            actions = torch.multinomial(log_pi.exp().cpu(), 1, generator=self.generator).squeeze(-1)
+        out = actions.cpu().numpy()
         return out[0] if single else out
 
-    def update(self, batch: ReplayBatch) -> dict[str, float]:
-        """One gradient step each for the critics, the actor and the temperature; then Polyak."""
-        stats = self._critic_step(batch)
-        stats.update(self._actor_and_alpha_step(batch.obs))
-        with torch.no_grad():
-            for target, source in zip(self.target_critic.parameters(), self.critic.parameters()):
-                target.lerp_(source, self.cfg.tau)
-        self.version += 1
-        return stats
+    def _soft_value(self, next_obs: torch.Tensor) -> torch.Tensor:
+        log_pi = self.log_policy(next_obs)
+        return (log_pi.exp() * (self.q_values(next_obs, target=True) - self.alpha * log_pi)).sum(-1)
 
-    def _critic_step(self, batch: ReplayBatch) -> dict[str, float]:
-        with torch.no_grad():
-            log_pi = self.log_policy(batch.next_obs)
-            soft = (log_pi.exp() * (self.q_values(batch.next_obs, target=True) - self.alpha * log_pi)).sum(-1)
-            target = batch.rewards + self.cfg.gamma * (1.0 - batch.terminated) * soft
+    def _taken_q(self, batch: ReplayBatch) -> tuple[torch.Tensor, torch.Tensor]:
         index = batch.actions[:, :1].long()
         x = self.input_mask(batch.obs)
         q1, q2 = (critic(x).gather(1, index).squeeze(1) for critic in self.critic)
-        loss = 0.5 * ((q1 - target).square().mean() + (q2 - target).square().mean())
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.critic_optimizer.step()
-        return {"critic_loss": loss.item(), "q_mean": q1.mean().item()}
+        return q1, q2
 
-    def _actor_and_alpha_step(self, obs: torch.Tensor) -> dict[str, float]:
+    def _actor_loss(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         log_pi = self.log_policy(obs)
         pi = log_pi.exp()
         with torch.no_grad():
             q = self.q_values(obs)
-        actor_loss = (pi * (self.alpha * log_pi - q)).sum(-1).mean()
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        self.actor_optimizer.step()
-        entropy = -(pi * log_pi).sum(-1).detach()
-        alpha_loss = (self.log_alpha * (entropy - self.target_entropy)).mean()
-        self.alpha_optimizer.zero_grad(set_to_none=True)
-        alpha_loss.backward()
-        self.alpha_optimizer.step()
-        return {"actor_loss": actor_loss.item(), "alpha": self.alpha, "entropy": entropy.mean().item()}
-
-    def state_dict(self) -> dict[str, Any]:
-        """Networks, optimisers, temperature, sampling generator and version."""
-        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
-                "target_critic": self.target_critic.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
-                "actor_optimizer": self.actor_optimizer.state_dict(),
-                "critic_optimizer": self.critic_optimizer.state_dict(),
-                "alpha_optimizer": self.alpha_optimizer.state_dict(),
-                "generator": self.generator.get_state(), "version": self.version}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        for name in ("actor", "critic", "target_critic", "actor_optimizer", "critic_optimizer", "alpha_optimizer"):
-            getattr(self, name).load_state_dict(state[name])
-        with torch.no_grad():
-            self.log_alpha.copy_(state["log_alpha"])
-        self.generator.set_state(state["generator"])
-        self.version = int(state["version"])
+        return (pi * (self.alpha * log_pi - q)).sum(-1).mean(), -(pi * log_pi).sum(-1)
