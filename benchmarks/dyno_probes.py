@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ import torch
 
 from benchmarks.slots_table import Budget as SlotsBudget
 from benchmarks.slots_table import train_variant
+from benchmarks.seeded_table import table_main
 from causal.slot_split import SplitConfig, StaticDynamicSplit, bins, linear_probe
 from causal.slots import SlotConfig, SlotModel, fit_autoencoder, token_masks
 from envs.chemical_pixels import ChemicalPixelsEnv
@@ -161,23 +161,16 @@ def table(results: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", nargs="+", type=int, default=[0])
-    for f in dataclasses.fields(Budget):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=int, default=f.default)
-    for name in ("disentangle_weight", "lecam_weight"):
-        p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(SplitConfig(), name))
-    p.add_argument("--out", type=Path, default=Path("benchmark-results/dyno/probes.json"))
-    args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    budget = Budget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Budget)})
-    results: list[dict[str, Any]] = []
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    for seed in args.seeds:
-        results.append(run_seed(seed, budget, SplitConfig(disentangle_weight=args.disentangle_weight,
-                                                          lecam_weight=args.lecam_weight)))
-        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": results}, indent=1))
-    print(table(results))
+    def split_flags(p: argparse.ArgumentParser) -> None:
+        for name in ("disentangle_weight", "lecam_weight"):
+            p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(SplitConfig(), name))
+
+    def one_seed(seed: int, budget: Budget, args: argparse.Namespace, _save: object) -> dict[str, Any]:
+        return run_seed(seed, budget, SplitConfig(disentangle_weight=args.disentangle_weight,
+                                                  lecam_weight=args.lecam_weight))
+
+    table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/probes.json"),
+               run_seed=one_seed, table=table, add_arguments=split_flags)
 
 
 if __name__ == "__main__":

@@ -27,9 +27,7 @@ Budgets are update counts; one torch thread.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -41,6 +39,7 @@ from torch import nn
 
 from benchmarks.slots_table import Budget as SlotsBudget
 from benchmarks.slots_table import train_variant
+from benchmarks.seeded_table import table_main
 from causal.slot_world_model import (
     MonolithicWorldModel,
     SlotWorldModel,
@@ -216,20 +215,8 @@ def table(results: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", nargs="+", type=int, default=[0])
-    for f in dataclasses.fields(Budget):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=int, default=f.default)
-    p.add_argument("--out", type=Path, default=Path("benchmark-results/dyno/world_model.json"))
-    args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    budget = Budget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Budget)})
-    results: list[dict[str, Any]] = []
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    for seed in args.seeds:
-        results.append(run_seed(seed, budget))
-        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": results}, indent=1))
-    print(table(results))
+    table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/world_model.json"),
+               run_seed=lambda seed, budget, _args, _save: run_seed(seed, budget), table=table)
 
 
 if __name__ == "__main__":

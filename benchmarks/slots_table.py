@@ -20,9 +20,7 @@ machine gives the same numbers, only later; one torch thread.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -31,6 +29,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from benchmarks.seeded_table import table_main
 from causal.fg_ari import fg_ari
 from causal.slots import SlotConfig, SlotModel, SlotTrainer, fit_autoencoder, token_masks
 from envs.chemical_pixels import ChemicalPixelsEnv
@@ -134,24 +133,8 @@ def table(results: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", nargs="+", type=int, default=[0])
-    for f in dataclasses.fields(Budget):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=int, default=f.default)
-    p.add_argument("--out", type=Path, default=Path("benchmark-results/slots/table.json"))
-    args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    budget = Budget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Budget)})
-    results: list[dict[str, Any]] = []
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-
-    def save(partial: dict[str, Any]) -> None:
-        done = results + [partial]
-        args.out.write_text(json.dumps({"budget": dataclasses.asdict(budget), "results": done}, indent=1))
-
-    for seed in args.seeds:
-        results.append(run_seed(seed, budget, save))
-    print(table(results))
+    table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/slots/table.json"),
+               run_seed=lambda seed, budget, _args, save: run_seed(seed, budget, save), table=table)
 
 
 if __name__ == "__main__":
