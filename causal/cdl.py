@@ -406,12 +406,44 @@ class CDLModel(nn.Module):
         out_j, in_i, sample = wins.nonzero(as_tuple=True)
         if not len(out_j):
             return gain
-        counts = wins.flatten(1).sum(dim=1)
+        dropped = torch.where(is_max[out_j, in_i, sample], runner_up[out_j, 0, sample], first[out_j, 0, sample])
+        gain[out_j, in_i, sample] = self._nll_of_rows(out_j, sample, dropped, cat, delta) - full_nll[out_j, sample]
+        return gain
+
+    def permuted_gain(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                      other_state: torch.Tensor, other_action: torch.Tensor) -> torch.Tensor:
+        """NLL(input i's value taken from another sample) - NLL(full) per output j, input i and sample:
+        ``[J, I, B]`` nats, module input order; sample b's input i is read from ``other_state[b]`` /
+        ``other_action[b]`` (a permutation of the held-out set), every other input from its own.
+
+        Each input's feature depends on that input alone, so swapping it is swapping its feature row;
+        the heads run only where the swap changes the aggregate (the input won some feature, or its
+        swapped feature does). What it is for: the permuted-input null of
+        :mod:`causal.edge_tests`."""
+        feats = self.features(state, action)
+        first, runner_up, is_max = max_and_runner_up(feats)
+        swapped = self.features(other_state, other_action)
+        permuted = torch.maximum(torch.where(is_max, runner_up, first), swapped)
+        cat, delta = self._targets(state, next_state)
+        full_nll = self._nll_of(self.predict(first), cat, delta)[:, 0]
+        gain = full_nll.new_zeros(is_max.shape[:3])
+        out_j, in_i, sample = (permuted != first).any(dim=-1).nonzero(as_tuple=True)
+        if not len(out_j):
+            return gain
+        rows = permuted[out_j, in_i, sample]
+        gain[out_j, in_i, sample] = self._nll_of_rows(out_j, sample, rows, cat, delta) - full_nll[out_j, sample]
+        return gain
+
+    def _nll_of_rows(self, out_j: torch.Tensor, sample: torch.Tensor, aggregated_rows: torch.Tensor,
+                     cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
+        """NLL ``[N]`` of output ``out_j[n]``'s head on the aggregate ``aggregated_rows[n]`` against sample
+        ``sample[n]``'s target; ``out_j`` sorted (as ``nonzero`` gives it). The rows are packed per output,
+        so the heads run on at most max-rows-per-output aggregates each."""
+        counts = torch.bincount(out_j, minlength=self.num_outputs)
         row = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
         rows = int(counts.max())
-        dropped = torch.where(is_max[out_j, in_i, sample], runner_up[out_j, 0, sample], first[out_j, 0, sample])
-        aggregated = first.new_zeros(self.num_outputs, rows, first.shape[-1])
-        aggregated[out_j, row] = dropped
+        aggregated = aggregated_rows.new_zeros(self.num_outputs, rows, aggregated_rows.shape[-1])
+        aggregated[out_j, row] = aggregated_rows
         samples = torch.zeros(self.num_outputs, rows, dtype=torch.long, device=out_j.device)
         samples[out_j, row] = sample
         codec = self.codec
@@ -419,9 +451,7 @@ class CDLModel(nn.Module):
         delta_rows = None
         if delta is not None:
             delta_rows = delta.gather(1, samples[codec.cont_index, :, None].expand(-1, -1, delta.shape[-1]))
-        dropped_nll = self._nll_of(self.predict(aggregated[:, None]), cat_rows, delta_rows)[:, 0]
-        gain[out_j, in_i, sample] = dropped_nll[out_j, row] - full_nll[out_j, sample]
-        return gain
+        return self._nll_of(self.predict(aggregated[:, None]), cat_rows, delta_rows)[:, 0][out_j, row]
 
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,

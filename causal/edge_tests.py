@@ -27,6 +27,28 @@ What is assumed, and why:
   (``python -m benchmarks.fdr_graphs``) rather than prove.
 * An entry whose per-sample ratios are all equal (its input is never the one the max aggregate
   uses) has standard error 0 and is decided by its mean alone.
+
+**The bias estimated from the data instead** (``bias="permuted"``, ``--evaluator-bias permuted``).
+For every entry the learned model's CMI is also computed for the same input with its held-out values
+permuted across the samples (the *null*: every dependence of the output on that input is broken,
+its marginal kept), in the same pass. Per sample, the drop-one term is the same in both, so the
+difference ``CMI - null`` is the full model's loss when input ``i`` is read from another sample:
+``NLL(s'_j | s with s_i permuted, a) - NLL(s'_j | s, a)``, the permutation importance of ``i`` for
+output ``j``. An entry is an edge when the one-sided test of ``CMI - null > 0`` rejects (its standard
+error from those paired per-sample differences), Benjamini-Hochberg as above; ``min_cmi`` then only
+says which non-edges are still undecided (their interval of ``CMI - null`` reaches it). Assumed:
+
+* **Exchangeability.** For a non-edge (``s'_j`` independent of ``s_i`` given the other inputs) the
+  permuted sample has the same distribution as the real one only if ``s_i`` is also independent of the
+  other inputs; then ``E[CMI - null] = 0`` exactly, whatever the model's bias, and the test has its
+  level. Uniformly random transitions (``benchmarks.fdr_graphs``) satisfy it. On-policy data, where a
+  factor's value depends on the others (an agent next to the object it carries), does not: permuting
+  makes inputs the model never saw, its loss there is positive for non-edges too, and the test
+  over-rejects. A conditional permutation would be needed there; we do not have one.
+* **Samples independent across the permutation.** The paired differences of samples ``b`` and
+  ``perm(b)`` share a value, so they are not quite independent; with thousands of samples and a
+  random permutation the standard error from their spread is taken as is.
+* The null is one permutation, drawn afresh per estimate (the evaluator's generator, seeded).
 """
 from __future__ import annotations
 
@@ -37,43 +59,80 @@ import numpy as np
 
 from proto.messages import EDGE_RULES
 
-__all__ = ["EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "undecided"]
+BIASES = ("fixed", "permuted")
+"""How the fdr rule allows for the learned model's bias: ``fixed`` tests ``CMI > min_cmi``;
+``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input."""
+
+__all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "undecided"]
 
 
 @dataclass(frozen=True)
 class EdgeEstimate:
-    """Per-entry CMI (mean of per-sample log-likelihood ratios), its standard error and sample count."""
+    """Per-entry CMI (mean of per-sample log-likelihood ratios), its standard error and sample count;
+    with the permuted-input null (see the module's docstring) where it was computed: ``null`` is the
+    CMI of the input permuted across samples, ``excess_stderr`` the standard error of ``cmi - null``."""
 
     cmi: np.ndarray
     stderr: np.ndarray
     samples: int
+    null: np.ndarray | None = None
+    excess_stderr: np.ndarray | None = None
 
     @classmethod
-    def from_pointwise(cls, gains: np.ndarray) -> "EdgeEstimate":
-        """From per-sample ratios ``[B, d_S, d_S + 1]`` (nats)."""
-        n = gains.shape[0]
-        sd = gains.std(axis=0, ddof=1) if n > 1 else np.zeros(gains.shape[1:])
-        return cls(gains.mean(axis=0), sd / math.sqrt(max(n, 1)), n)
+    def from_pointwise(cls, gains: np.ndarray, permuted: np.ndarray | None = None) -> "EdgeEstimate":
+        """From per-sample ratios ``[B, d_S, d_S + 1]`` (nats) and, optionally, the per-sample losses of
+        the full model when the entry's input is permuted (``CMI - null`` per sample, same shape)."""
+        def mean_and_se(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            sd = x.std(axis=0, ddof=1) if x.shape[0] > 1 else np.zeros(x.shape[1:])
+            return x.mean(axis=0), sd / math.sqrt(max(x.shape[0], 1))
+
+        cmi, se = mean_and_se(gains)
+        if permuted is None:
+            return cls(cmi, se, gains.shape[0])
+        excess, excess_se = mean_and_se(permuted)
+        return cls(cmi, se, gains.shape[0], cmi - excess, excess_se)
 
     @classmethod
-    def from_sums(cls, total: np.ndarray, squares: np.ndarray, n: int) -> "EdgeEstimate":
-        """From the sums of the per-sample ratios and of their squares over ``n`` samples (a stream)."""
-        mean = total / max(n, 1)
-        var = np.clip(squares - n * mean**2, 0.0, None) / max(n - 1, 1)
-        return cls(mean, np.sqrt(var / max(n, 1)) if n > 1 else np.zeros_like(mean), n)
+    def from_sums(cls, total: np.ndarray, squares: np.ndarray, n: int, permuted_total: np.ndarray | None = None,
+                  permuted_squares: np.ndarray | None = None) -> "EdgeEstimate":
+        """From the sums of the per-sample ratios and of their squares over ``n`` samples (a stream),
+        and optionally the same sums of the per-sample ``CMI - null`` terms."""
+        def mean_and_se(s: np.ndarray, sq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            mean = s / max(n, 1)
+            var = np.clip(sq - n * mean**2, 0.0, None) / max(n - 1, 1)
+            return mean, np.sqrt(var / max(n, 1)) if n > 1 else np.zeros_like(mean)
+
+        cmi, se = mean_and_se(total, squares)
+        if permuted_total is None or permuted_squares is None:
+            return cls(cmi, se, n)
+        excess, excess_se = mean_and_se(permuted_total, permuted_squares)
+        return cls(cmi, se, n, cmi - excess, excess_se)
 
     def interval(self, z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
         """A two-sided normal confidence interval (95% by default)."""
         return self.cmi - z * self.stderr, self.cmi + z * self.stderr
 
+    def excess(self) -> tuple[np.ndarray, np.ndarray]:
+        """``cmi - null`` and its standard error (ValueError without the null)."""
+        if self.null is None or self.excess_stderr is None:
+            raise ValueError("this estimate has no permuted-input null (estimate it with a generator)")
+        return self.cmi - self.null, self.excess_stderr
 
-def p_values(estimate: EdgeEstimate, min_cmi: float) -> np.ndarray:
-    """One-sided p-values of ``CMI > min_cmi`` per entry (0 or 1 where the standard error is 0)."""
-    excess = estimate.cmi - min_cmi
-    safe = np.where(estimate.stderr > 0, estimate.stderr, 1.0)
-    z = excess / safe
-    p = 0.5 * np.vectorize(math.erfc)(z / math.sqrt(2.0))
-    return np.where(estimate.stderr > 0, p, np.where(excess > 0, 0.0, 1.0))
+
+def _one_sided(excess: np.ndarray, stderr: np.ndarray) -> np.ndarray:
+    safe = np.where(stderr > 0, stderr, 1.0)
+    p = 0.5 * np.vectorize(math.erfc)(excess / safe / math.sqrt(2.0))
+    return np.where(stderr > 0, p, np.where(excess > 0, 0.0, 1.0))
+
+
+def p_values(estimate: EdgeEstimate, min_cmi: float, bias: str = "fixed") -> np.ndarray:
+    """One-sided p-values per entry of ``CMI > min_cmi`` (``bias="fixed"``) or of ``CMI > null``
+    (``"permuted"``); 0 or 1 where the standard error is 0."""
+    if bias not in BIASES:
+        raise ValueError(f"bias must be one of {BIASES}, got {bias!r}")
+    if bias == "permuted":
+        return _one_sided(*estimate.excess())
+    return _one_sided(estimate.cmi - min_cmi, estimate.stderr)
 
 
 def benjamini_hochberg(p: np.ndarray, fdr: float) -> np.ndarray:
@@ -88,13 +147,13 @@ def benjamini_hochberg(p: np.ndarray, fdr: float) -> np.ndarray:
     return out.reshape(np.shape(p))
 
 
-def fdr_graph(estimate: EdgeEstimate, fdr: float, min_cmi: float) -> np.ndarray:
-    """The edges (bool ``[d_S, d_S + 1]``) whose ``CMI > min_cmi`` tests reject at ``fdr``; the
+def fdr_graph(estimate: EdgeEstimate, fdr: float, min_cmi: float, bias: str = "fixed") -> np.ndarray:
+    """The edges (bool ``[d_S, d_S + 1]``) whose tests (:func:`p_values`) reject at ``fdr``; the
     self-edges are left out of the tests (kept by Assumption 4, added by the caller)."""
     n = estimate.cmi.shape[0]
     tested = ~np.eye(n, n + 1, dtype=bool)
     out = np.zeros(estimate.cmi.shape, dtype=bool)
-    out[tested] = benjamini_hochberg(p_values(estimate, min_cmi)[tested], fdr)
+    out[tested] = benjamini_hochberg(p_values(estimate, min_cmi, bias)[tested], fdr)
     return out
 
 
@@ -105,17 +164,19 @@ def undecided(estimate: EdgeEstimate, threshold: float, z: float = 1.96) -> np.n
 
 
 def decide(estimate: EdgeEstimate, rule: str, threshold: float, fdr: float, min_cmi: float,
-           z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
+           z: float = 1.96, bias: str = "fixed") -> tuple[np.ndarray, np.ndarray]:
     """The edges and the undecided entries (bool ``[d_S, d_S + 1]``, self-edges neither) under ``rule``.
 
     ``fixed``: edge if ``cmi >= threshold``; undecided where the interval contains ``threshold``.
-    ``fdr``: edge if the ``CMI > min_cmi`` test rejects at ``fdr`` (:func:`fdr_graph`); undecided is
-    an entry that is not an edge yet whose interval reaches ``min_cmi`` (neither shown to be an edge
-    nor shown to be below the smallest effect that counts). Either way more held-out data decides it."""
+    ``fdr``: edge if the test rejects at ``fdr`` (:func:`fdr_graph`; ``bias`` says which test);
+    undecided is an entry that is not an edge yet whose interval reaches ``min_cmi`` (of ``cmi``, or
+    of ``cmi - null`` under ``bias="permuted"``): neither shown to be an edge nor shown to be below
+    the smallest effect that counts. Either way more held-out data decides it."""
     if rule not in EDGE_RULES:
         raise ValueError(f"edge rule must be one of {EDGE_RULES}, got {rule!r}")
     off = ~np.eye(*estimate.cmi.shape, dtype=bool)
     if rule == "fixed":
         return (estimate.cmi >= threshold) & off, undecided(estimate, threshold, z) & off
-    edges = fdr_graph(estimate, fdr, min_cmi)
-    return edges, ~edges & (estimate.interval(z)[1] >= min_cmi) & off
+    edges = fdr_graph(estimate, fdr, min_cmi, bias)
+    excess, stderr = estimate.excess() if bias == "permuted" else (estimate.cmi, estimate.stderr)
+    return edges, ~edges & (excess + z * stderr >= min_cmi) & off

@@ -31,20 +31,41 @@ class CMIGraph:
 
     @torch.no_grad()
     def estimate(self, model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
-                 chunk: int = 4096) -> EdgeEstimate:
+                 permute: torch.Generator | None = None, chunk: int = 4096) -> EdgeEstimate:
         """The same CMI with standard errors from its per-sample log-likelihood ratios (the point-wise
-        CMI), streamed in chunks; constant inputs are 0 with standard error 0, as in :meth:`scores`."""
-        total = np.zeros((model.num_outputs, model.num_inputs))
-        squares = np.zeros_like(total)
-        for start in range(0, state.shape[0], chunk):
-            gains = model.pointwise_cmi(*(t[start : start + chunk] for t in (state, action, next_state))).double().cpu()
-            total += gains.sum(dim=0).numpy()
-            squares += gains.square().sum(dim=0).numpy()
-        estimate = EdgeEstimate.from_sums(total, squares, state.shape[0])
-        if state.shape[0]:
+        CMI), streamed in chunks; constant inputs are 0 with standard error 0, as in :meth:`scores`.
+        With ``permute``, also the permuted-input null of :mod:`causal.edge_tests` (each input read
+        from the sample a permutation of the whole set, drawn from ``permute``, assigns)."""
+        sums = [np.zeros((model.num_outputs, model.num_inputs)) for _ in range(4 if permute is not None else 2)]
+        n = state.shape[0]
+        order = None if permute is None else torch.randperm(n, generator=permute).to(state.device)
+        for start in range(0, n, chunk):
+            part = slice(start, start + chunk)
+            terms = [model.pointwise_cmi(state[part], action[part], next_state[part])]
+            if order is not None:
+                terms.append(permuted_terms(model, state[part], action[part], next_state[part],
+                                            state[order[part]], action[order[part]]))
+            for k, term in enumerate(terms):
+                term = term.double().cpu()
+                sums[2 * k] += term.sum(dim=0).numpy()
+                sums[2 * k + 1] += term.square().sum(dim=0).numpy()
+        estimate = EdgeEstimate.from_sums(sums[0], sums[1], n, *sums[2:])
+        if n:
             constant = model.constant_inputs(state, action).cpu().numpy()
-            estimate.cmi[:, constant], estimate.stderr[:, constant] = 0.0, 0.0
+            for values in (estimate.cmi, estimate.stderr, estimate.null, estimate.excess_stderr):
+                if values is not None:
+                    values[:, constant] = 0.0
         return estimate
+
+
+def permuted_terms(model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                   other_state: torch.Tensor, other_action: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+    """Per-sample ``CMI - null`` terms (:meth:`CDLModel.permuted_gain`), ``[B, J, I]`` graph order."""
+    out = torch.empty(state.shape[0], model.num_outputs, model.num_inputs, device=state.device)
+    for start in range(0, state.shape[0], chunk):
+        parts = (t[start : start + chunk] for t in (state, action, next_state, other_state, other_action))
+        out[start : start + chunk] = model.to_graph_order(model.permuted_gain(*parts).permute(2, 0, 1))
+    return out
 
 
 class PointwiseCMI:
