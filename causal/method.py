@@ -116,6 +116,14 @@ class SlotScorer(Protocol):
         """``{"fg_ari": ..., ...}`` of the final ``model`` on frames of the run's environment ``spec``."""
 
 
+class LatentActionScorer(Protocol):
+    """Scores of a method's latent actions (chapter 8's FLAM): the run summary's ``latent_actions`` block."""
+
+    def scores(self, model: nn.Module, spec: EnvSpec) -> dict[str, Any]:
+        """``{"psnr": ..., "dci_d": ..., "dci_c": ..., "dci_i": ..., ...}`` of the final ``model`` on unseen
+        videos of the run's environment ``spec``."""
+
+
 TaskAbstraction = Callable[[np.ndarray], Abstraction]
 """A global graph (with self-edges) -> which factors a policy sees (``Abstraction.kept``)."""
 
@@ -152,6 +160,8 @@ class Method:
     rollout_step: RolloutStep | None = None
     slots: SlotScorer | None = None
     """Object slots learned from frames (Dyn-O): the summary's ``slots`` block, from the final model."""
+    latent_actions: LatentActionScorer | None = None
+    """Per-slot latent actions learned from video (FLAM): the summary's ``latent_actions`` block, from the final model."""
     envs: tuple[str, ...] = ()
     """Environments the method runs on (empty: any); ``causeway run`` refuses others before starting."""
     resumable: tuple[str, ...] = ()

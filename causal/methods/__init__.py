@@ -25,6 +25,7 @@ METHODS: dict[str, str] = {
     "cbm": "causal.methods.cbm",
     "skild": "causal.methods.skild",
     "dyno": "causal.methods.dyno",
+    "flam": "causal.methods.flam",
 }
 """Registered methods: name -> ``module`` defining ``METHOD`` (or ``module:NAME``)."""
 

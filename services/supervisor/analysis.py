@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+from causal.method import LatentActionScorer, SlotScorer
 from causal.methods import get_method
 from envs.registry import env_entry
 from proto.messages import GraphReport, LocalGraphReport
@@ -61,8 +62,13 @@ def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) ->
         local_report.plot_curve(record.local_history, run_dir / "local_learning_curve.png")
     if final_local is not None:
         add_final_local_graph(content, final_local, run_dir)
-    if get_method(cfg.method).slots is not None and cfg.evaluate and not record.failure:
-        content["slots"] = _slot_scores(cfg, run_dir, stream)
+    method = get_method(cfg.method)
+    if method.slots is not None and cfg.evaluate and not record.failure:
+        stream.write("scoring the final model's slots (FG-ARI, no masks) ...\n")
+        content["slots"] = _final_model_scores(cfg, run_dir, method.slots)
+    if method.latent_actions is not None and cfg.evaluate and not record.failure:
+        stream.write("scoring the final model's latent actions (10-step PSNR, DCI on unseen videos) ...\n")
+        content["latent_actions"] = _final_model_scores(cfg, run_dir, method.latent_actions)
     if ok and report is not None and evaluation.applies(env_entry(cfg.env), get_method(cfg.method)):
         content["evaluation"] = _evaluate(cfg, run_dir, report, stream)
     if report is not None:
@@ -95,18 +101,17 @@ def _final_reports(cfg: RunConfig, run_dir: Path, stream: TextIO) -> tuple[Graph
     return final, local
 
 
-def _slot_scores(cfg: RunConfig, run_dir: Path, stream: TextIO) -> dict[str, Any]:
-    """The method's slot scores (Dyn-O: FG-ARI) of the learner's final model; an error is recorded."""
-    stream.write("scoring the final model's slots (FG-ARI, no masks) ...\n")
+def _final_model_scores(cfg: RunConfig, run_dir: Path, scorer: SlotScorer | LatentActionScorer) -> dict[str, Any]:
+    """A scorer's scores of the learner's final model (Dyn-O's slots: FG-ARI; FLAM's latent actions:
+    PSNR and DCI); an error is recorded."""
     try:
         saved = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
         if saved is None:
             return {"error": "no dynamics-learner checkpoint"}
         model = evaluation.model_from_checkpoint(saved)
-        return {"updates": int(saved["trainer"]["updates"]),
-                **get_method(cfg.method).slots.scores(model, run_env_spec(cfg))}
+        return {"updates": int(saved["trainer"]["updates"]), **scorer.scores(model, run_env_spec(cfg))}
     except Exception as exc:  # noqa: BLE001 - reported in the summary
-        log.exception("slot scoring failed")
+        log.exception("scoring the final model failed")
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
@@ -155,6 +160,9 @@ def print_summary(content: dict) -> None:
         shown["local_graph"] = {k: local.get(k) for k in ("evaluation", "num_transitions", "roc_auc", "pr_auc", "best_f1")}
     if "slots" in content:
         shown["slots"] = {k: content["slots"].get(k) for k in ("fg_ari", "updates", "error") if k in content["slots"]}
+    if "latent_actions" in content:
+        shown["latent_actions"] = {k: content["latent_actions"].get(k) for k in ("psnr", "dci_d", "dci_c", "dci_i", "updates",
+                                                                                 "error") if k in content["latent_actions"]}
     if "reward_graph" in content:
         shown["reward_graph"] = {k: content["reward_graph"].get(k) for k in ("learned_parents", "accuracy", "f1")}
         shown["task_abstraction"] = {k: content["task_abstraction"].get(k) for k in ("kept", "accuracy")}

@@ -1,0 +1,260 @@
+"""FLAM (chapter 8) as one trainable model for the dynamics-learner: the FSQ autoencoder (eq. 8.1) and
+the factored latent action model (eqs. 8.2-8.6, :mod:`causal.flam`), trained on the run's transitions.
+
+The bus carries no frames yet (the factor-extractor service is not built), so, as Dyn-O's trainer does,
+the trainer draws its frames itself: each replayed transition's state and next state (the agents'
+grid positions) are drawn with ``multigrid-agents``' renderer
+(:meth:`envs.multigrid_agents.MultiGridAgentsEnv.render_positions`), with the renderer's exact
+segments as the optional mask prior. Phases by update count, Algorithm 9's order:
+
+1. ``ae_updates``: the FSQ autoencoder by reconstruction (eq. 8.1), then frozen;
+2. then: FLAM on eq. 8.6, one clip of two frames (s, s') per transition. The replay holds
+   transitions, not episodes, so the chapter's longer clips cannot be cut from it (docs/deviations.md);
+   the factorizer's temporal attention then sees one past frame in training, the whole history in the
+   rollouts that score it.
+
+Every ``live_every`` latent-action updates the trainer scores its model on a few fixed unseen videos
+(:func:`latent_action_scores`: 10-step PSNR, DCI, each slot's KL) and returns the figures with that
+update's losses (``live_*`` keys), for the learner's beats and metrics: the live page's per-slot
+latent actions. :class:`LatentActionScores` is the method's ``latent_actions`` role: the same scores of
+the final model on 100 unseen videos, which a run's ``summary.json`` carries as ``latent_actions``.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from causal.dci import dci
+from causal.factored import FactorLayout
+from causal.flam import FLAM, FLAMConfig, LAMTrainer, encode_clips, psnr, rollout
+from causal.flam_nets import FSQAutoencoder, gaussian_kl
+from causal.method import layout_from_config, model_config_json
+from causal.slots import FEATURE_STRIDE, frames_to_tensor
+from envs.multigrid_agents import NUM_MOVES, MultiGridAgentsEnv, record_videos
+from proto.messages import EnvSpec
+from proto.settings import doc
+
+SCORE_SEED = 20_000
+"""Unseen videos come from episodes seeded from here on: seeds no run's env-workers draw from."""
+FSQ_LEVELS = (5, 5, 5, 5)
+"""FSQ levels of the feature channels (d_e = 4), as ``benchmarks.flam_table`` and results.md use."""
+
+
+@dataclass(frozen=True)
+class FLAMRunConfig:
+    """FLAM (ch. 8) in a run: the autoencoder phase, the latent action model, the live scores.
+    Defaults are results.md's Table 8.1 run (broadcast aggregator, annealed mask prior)."""
+
+    num_slots: int = doc(0, "K: slots, each with its own latent action; 0 = agents + 1 (one per agent and "
+                            "the background; the correlated variant's K = 3 + 1 is --flam-num-slots 4)")
+    slot_dim: int = doc(32, "D: size of a slot and of the attention blocks")
+    action_dim: int = doc(8, "d_a: size of one slot's latent action")
+    iterations: int = doc(3, "slot-attention iterations, each followed by temporal self-attention")
+    beta_kl: float = doc(1e-3, "beta_KL of eq. 8.6")
+    aggregator: str = doc("broadcast", "broadcast (the slots alone draw e^_{t+1}) or cross-attention (the "
+                                       "chapter's: e_t's tokens attend to the predicted slots)",
+                          choices=("broadcast", "cross-attention"))
+    mask_prior: str = doc("annealed", "annealed: Dyn-O's prior from the renderer's segments, dropped with "
+                                      "probability log(1+u)/log(1+U) over lam_updates; none: no masks",
+                          choices=("annealed", "none"))
+    ae_updates: int = doc(300, "phase 1: FSQ autoencoder updates (eq. 8.1; then frozen)")
+    lam_updates: int = doc(1200, "U of the mask prior's schedule (latent-action updates until masks are never given)")
+    ae_lr: float = doc(2e-3, "Adam learning rate of the autoencoder")
+    lr: float = doc(2e-3, "Adam learning rate of the latent action model")
+    batch_size: int = doc(16, "transitions per update (autoencoder: two frames each; FLAM: one clip each)")
+    live_every: int = doc(200, "latent-action updates between live scores on fixed unseen videos (0: none)")
+    live_videos: int = doc(16, "unseen videos of the live scores")
+    horizon: int = doc(10, "prediction steps of the PSNR (live and final)")
+
+    def __post_init__(self) -> None:
+        if min(self.slot_dim, self.action_dim, self.iterations, self.batch_size, self.live_videos, self.horizon) < 1:
+            raise ValueError("FLAM sizes, iterations, batch size, live videos and horizon must be positive")
+        if min(self.num_slots, self.ae_updates, self.lam_updates, self.live_every) < 0:
+            raise ValueError("num_slots, ae_updates, lam_updates and live_every must not be negative")
+        if self.slot_dim % 4:
+            raise ValueError(f"slot_dim must be a multiple of 4 (attention heads), got {self.slot_dim}")
+        if not all(math.isfinite(x) and x > 0 for x in (self.ae_lr, self.lr)):
+            raise ValueError("FLAM learning rates must be positive finite numbers")
+        if not (math.isfinite(self.beta_kl) and self.beta_kl >= 0):
+            raise ValueError(f"beta_kl must be a finite number >= 0, got {self.beta_kl}")
+        if self.aggregator not in ("broadcast", "cross-attention"):
+            raise ValueError(f"aggregator must be 'broadcast' or 'cross-attention', got {self.aggregator!r}")
+        if self.mask_prior not in ("annealed", "none"):
+            raise ValueError(f"mask_prior must be 'annealed' or 'none', got {self.mask_prior!r}")
+
+    def lam(self, num_agents: int) -> FLAMConfig:
+        return FLAMConfig(num_slots=self.num_slots or num_agents + 1, slot_dim=self.slot_dim,
+                          action_dim=self.action_dim, iterations=self.iterations, levels=FSQ_LEVELS,
+                          beta_kl=self.beta_kl, aggregator=self.aggregator, lr=self.lr, batch_size=self.batch_size)
+
+
+def multigrid_geometry(layout: FactorLayout) -> tuple[int, int]:
+    """Agents and grid side of a MultiGrid-agents layout (``agent{i}.x``, ``agent{i}.y``); ``ValueError``
+    for any other, which FLAM's trainer cannot draw."""
+    n = layout.num_factors // 2
+    expected = tuple(f"agent{i}.{axis}" for i in range(n) for axis in "xy")
+    if n < 1 or tuple(layout.names) != expected or len(set(layout.sizes)) != 1:
+        raise ValueError("FLAM draws MultiGrid-agents states only (factors agent<i>.x, agent<i>.y on one grid)")
+    return n, int(layout.sizes[0])
+
+
+class FLAMModel(nn.Module):
+    """The FSQ autoencoder and FLAM of one MultiGrid-agents layout (one feature token per grid cell)."""
+
+    def __init__(self, layout: FactorLayout, config: FLAMRunConfig) -> None:
+        super().__init__()
+        self.layout, self.config = layout, config
+        self.num_agents, self.grid_size = multigrid_geometry(layout)
+        self.autoencoder = FSQAutoencoder(FSQ_LEVELS)
+        self.lam = FLAM(config.lam(self.num_agents), self.grid_size ** 2)
+
+    def renderer(self, correlated: bool = False) -> MultiGridAgentsEnv:
+        return MultiGridAgentsEnv(num_agents=self.num_agents, grid_size=self.grid_size,
+                                  cell_pixels=FEATURE_STRIDE, correlated=correlated)
+
+    def features(self, frames: torch.Tensor) -> torch.Tensor:
+        """Frozen features ``[B, T, n, d_e]`` of clips (uint8 ``[B, T, H, W, 3]``)."""
+        return encode_clips(self.autoencoder, frames)
+
+
+def model_from_config(data: dict[str, Any]) -> FLAMModel:
+    return FLAMModel(layout_from_config(data), FLAMRunConfig(**data["flam"]))
+
+
+def token_labels(labels: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """Each feature token's segment ``[..., n]`` of pixel labels ``[..., H, W]`` (one token per cell)."""
+    labels = torch.as_tensor(np.asarray(labels))
+    return labels[..., ::FEATURE_STRIDE, ::FEATURE_STRIDE].flatten(-2).long()
+
+
+@torch.no_grad()
+def latent_action_scores(model: FLAMModel, videos: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The scores of Tables 8.1-8.2 on ``videos`` (:func:`envs.multigrid_agents.record_videos`): PSNR of
+    the rollout over the whole video (latent actions inferred from the true frames, predictions fed
+    back), DCI of the latent actions' posterior means against the agents' actions (each slot one
+    factor), and each slot's mean KL to the prior (nats per transition: what its latent action carries)."""
+    model.eval()
+    frames = torch.from_numpy(videos["frames"])
+    features = model.features(frames)
+    predicted = rollout(model.lam, features, model.autoencoder.fsq)
+    images = model.autoencoder.decode(predicted.flatten(0, 1), model.grid_size)
+    target = frames_to_tensor(frames[:, 1:].flatten(0, 1))
+    shape = (len(frames), -1) + images.shape[1:]
+    slots, _ = model.lam.factorizer(features)
+    k, d = slots.shape[2:]
+    mu, log_sigma = model.lam.idm(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
+    scores = dci(mu, torch.from_numpy(videos["actions"]).flatten(0, 1), classes=NUM_MOVES)
+    return {"psnr": float(psnr(images.view(shape), target.view(shape)).mean()), "dci_d": scores.disentanglement,
+            "dci_c": scores.completeness, "dci_i": scores.informativeness,
+            "slot_kl": [float(v) for v in gaussian_kl(mu, log_sigma).mean(0)]}
+
+
+class FLAMTrainer:
+    """FLAM's two phases with the dynamics-learner's trainer interface (``update(s, a, s')``)."""
+
+    def __init__(self, layout: FactorLayout, config: FLAMRunConfig, seed: int) -> None:
+        torch.manual_seed(seed)
+        self.config, self.batch_size = config, config.batch_size
+        self.model = FLAMModel(layout, config)
+        self.render = self.model.renderer()
+        self.ae_optimizer = torch.optim.Adam(self.model.autoencoder.parameters(), lr=config.ae_lr)
+        self.lam_trainer = LAMTrainer(self.model.lam, seed=seed, mask_prior=config.mask_prior,
+                                      total_updates=config.lam_updates)
+        self.live = record_videos(self.render, config.live_videos, config.horizon, seed=SCORE_SEED + 50_000)
+        self.updates = 0
+
+    @property
+    def phase(self) -> str:
+        return "autoencoder" if self.updates < self.config.ae_updates else "latent_actions"
+
+    @property
+    def lr(self) -> float:
+        return self.config.ae_lr if self.phase == "autoencoder" else self.config.lr
+
+    def frames(self, states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames (uint8 ``[..., H, W, 3]``) and pixel labels of states ``[..., 2N]``, drawn by the renderer."""
+        flat = states.detach().cpu().numpy().reshape(-1, self.model.num_agents, 2).round().astype(np.int64)
+        frames, labels = self.render.render_positions(flat)
+        lead = tuple(states.shape[:-1])
+        return (torch.from_numpy(frames).view(lead + frames.shape[1:]),
+                torch.from_numpy(labels).view(lead + labels.shape[1:]))
+
+    def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> dict[str, float]:
+        """One update of the current phase; returns its losses, the phase (0, 1) and, every
+        ``live_every`` latent-action updates, the live scores (``live_*``)."""
+        phase = self.phase
+        if phase == "autoencoder":
+            stats = self._autoencoder_step(torch.cat([state, next_state]))
+        else:
+            frames, labels = self.frames(torch.stack([state, next_state], dim=1))
+            stats = self.lam_trainer.update(self.model.features(frames), token_labels(labels))
+            every = self.config.live_every
+            if every and (self.lam_trainer.updates - 1) % every == 0:
+                stats.update(self.live_scores())
+        self.updates += 1
+        return {**stats, "phase": float(phase == "latent_actions")}
+
+    def _autoencoder_step(self, states: torch.Tensor) -> dict[str, float]:
+        images = frames_to_tensor(self.frames(states)[0])
+        autoencoder = self.model.autoencoder
+        loss = F.mse_loss(autoencoder(images), images)
+        self.ae_optimizer.zero_grad()
+        loss.backward()
+        self.ae_optimizer.step()
+        if self.updates + 1 == self.config.ae_updates:
+            autoencoder.requires_grad_(False)
+        return {"autoencoder_mse": float(loss.detach())}
+
+    def live_scores(self) -> dict[str, float]:
+        """:func:`latent_action_scores` of the model now on the fixed live videos, as ``live_*`` stats."""
+        scores = latent_action_scores(self.model, self.live)
+        self.model.lam.train()
+        return {**{f"live_{k}": scores[k] for k in ("psnr", "dci_d", "dci_c", "dci_i")},
+                **{f"live_slot{k}_kl": v for k, v in enumerate(scores["slot_kl"])}}
+
+    def set_parents(self, adjacency: np.ndarray) -> None:
+        """FLAM estimates no graph over the given factors: nothing to take from one."""
+
+    def config_json(self) -> str:
+        return model_config_json("flam", self.model.layout, self.config)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"model": self.model.state_dict(), "updates": self.updates,
+                "optimizers": {"autoencoder": self.ae_optimizer.state_dict(),
+                               "latent_actions": self.lam_trainer.optimizer.state_dict()},
+                "lam_updates": self.lam_trainer.updates, "mask_generator": self.lam_trainer.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        state = copy.deepcopy(state)
+        self.model.load_state_dict(state["model"])
+        self.ae_optimizer.load_state_dict(state["optimizers"]["autoencoder"])
+        self.lam_trainer.optimizer.load_state_dict(state["optimizers"]["latent_actions"])
+        self.updates, self.lam_trainer.updates = int(state["updates"]), int(state["lam_updates"])
+        self.lam_trainer.generator.set_state(state["mask_generator"])
+        self.model.autoencoder.requires_grad_(self.updates < self.config.ae_updates)
+
+
+@dataclass(frozen=True)
+class LatentActionScores:
+    """The ``latent_actions`` role: Tables 8.1-8.2's scores of the final model on ``videos`` unseen videos."""
+
+    videos: int = 100
+
+    def scores(self, model: FLAMModel, spec: EnvSpec) -> dict[str, Any]:
+        correlated = bool(json.loads(spec.config_json or "{}").get("correlated", False))
+        render = model.renderer(correlated)
+        scores = latent_action_scores(model, record_videos(render, self.videos, model.config.horizon, SCORE_SEED))
+        return {**scores, "videos": self.videos, "horizon": model.config.horizon,
+                "num_slots": model.lam.config.num_slots, "env": spec.env_id, "settings": asdict(model.config),
+                "evaluation": f"final model on {self.videos} unseen videos of a uniformly random policy: PSNR of "
+                              f"{model.config.horizon}-step predictions (latent actions inferred from the true frames, "
+                              "predictions fed back; Table 8.1's protocol), DCI of the latent actions' posterior "
+                              "means against the agents' actions (Table 8.2), each slot's KL (nats)"}
