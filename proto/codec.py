@@ -25,10 +25,11 @@ import msgpack
 import numpy as np
 
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
-from proto.messages import EDGE_RULES, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ScoredBatch
+from proto.messages import EDGE_RULES, SCHEMA_VERSION, Control, EnvSpec, FrameBatch, GraphReport, LocalGraphReport
+from proto.messages import ScoredBatch
 from proto.messages import ServiceStats, TransitionBatch, Weights
 
-Message = EnvSpec | TransitionBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport | Control | ServiceStats
+Message = EnvSpec | TransitionBatch | FrameBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport | Control | ServiceStats
 M = TypeVar("M")
 
 # Bounds checked before (payload, strings, containers) or while (arrays) building objects.
@@ -314,6 +315,13 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "episode_id": _array("int64", ndim=1), "step": _array("int32", ndim=1),
         "local_graph": _optional(_array("uint8", ndim=3)), "option": _optional(_array("int32", ndim=1)),
     },
+    FrameBatch: {
+        "worker_id": _str, "seq": _int, "policy_version": _int, "frames": _array("uint8", ndim=4),
+        "state_frame": _array("int32", ndim=1), "next_frame": _array("int32", ndim=1), "action": _F32_2D,
+        "reward": _F32_1D, "terminated": _array("bool", ndim=1), "truncated": _array("bool", ndim=1),
+        "episode_id": _array("int64", ndim=1), "step": _array("int32", ndim=1),
+        "labels": _optional(_array("uint8", ndim=3)),
+    },
     ScoredBatch: {
         "transitions": _nested(TransitionBatch), "intrinsic_reward": _F32_1D,
         "reward_kind": _str, "weights_version": _int,
@@ -416,6 +424,28 @@ def _check_transitions(m: TransitionBatch) -> None:
     _require(ok, "bad_field", f"TransitionBatch.worker_id: {_short(m.worker_id)}")
 
 
+def _check_frames(m: FrameBatch) -> None:
+    steps, count = m.state_frame.shape[0], m.frames.shape[0]
+    _require(steps >= 1, "bad_field", "FrameBatch: empty batch")
+    _require(steps <= MAX_STEPS, "too_large", f"FrameBatch: {steps} steps > {MAX_STEPS}")
+    _require(1 <= count <= 2 * steps, "inconsistent", f"FrameBatch.frames: {count} frames for {steps} steps")
+    ok = m.frames.shape[3] == 3 and min(m.frames.shape[1:3]) >= 1
+    _require(ok, "inconsistent", f"FrameBatch.frames: shape {m.frames.shape}, want [F, H, W, 3]")
+    for name in ("next_frame", "reward", "terminated", "truncated", "episode_id", "step"):
+        shape = getattr(m, name).shape
+        _require(shape == (steps,), "inconsistent", f"FrameBatch.{name}: shape {shape}")
+    _require(m.action.shape[0] == steps, "inconsistent", f"FrameBatch.action: shape {m.action.shape}")
+    for name in ("state_frame", "next_frame"):
+        index = getattr(m, name)
+        _require(bool(((index >= 0) & (index < count)).all()), "inconsistent", f"FrameBatch.{name}: outside [0, {count})")
+    if m.labels is not None:
+        ok = m.labels.shape == m.frames.shape[:3]
+        _require(ok, "inconsistent", f"FrameBatch.labels: shape {m.labels.shape}, frames {m.frames.shape}")
+    _check_counters(m, "seq", "policy_version")
+    ok = _KEY_SEGMENT.fullmatch(m.worker_id) is not None
+    _require(ok, "bad_field", f"FrameBatch.worker_id: {_short(m.worker_id)}")
+
+
 def _check_scored(m: ScoredBatch) -> None:
     shape, want = m.intrinsic_reward.shape, (len(m.transitions),)
     _require(shape == want, "inconsistent", f"ScoredBatch.intrinsic_reward: {shape}, want {want}")
@@ -497,6 +527,7 @@ def _check_stats(m: ServiceStats) -> None:
 _VALIDATORS: Final[dict[type, Callable[[Any], None]]] = {
     EnvSpec: _check_env_spec,
     TransitionBatch: _check_transitions,
+    FrameBatch: _check_frames,
     ScoredBatch: _check_scored,
     Weights: _check_weights,
     GraphReport: _check_graph_report,

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -102,6 +102,45 @@ class TransitionBatch:
 
     def __len__(self) -> int:
         return int(self.state.shape[0])
+
+
+@dataclass(frozen=True)
+class FrameBatch:
+    """A batch of consecutive steps from one env-worker as pixels, for the factor-extractor, which turns
+    it into a TransitionBatch of slot factors (schema version 7; chapters 7-8).
+
+    Consecutive steps share frames (step t's next observation is step t + 1's observation), so a frame
+    travels once: ``frames`` holds the distinct frames and ``state_frame`` / ``next_frame`` index them.
+    ``F`` is ``T + 1`` plus one per episode reset inside the batch, at most ``2T``."""
+
+    TYPE: ClassVar[str] = "FrameBatch"
+    worker_id: str
+    seq: int
+    policy_version: int
+    frames: np.ndarray
+    """uint8 [F, H, W, 3]"""
+    state_frame: np.ndarray
+    """int32 [T]: index in ``frames`` of each step's observation"""
+    next_frame: np.ndarray
+    """int32 [T]: index in ``frames`` of each step's next observation"""
+    action: np.ndarray
+    """float32 [T, action_dim] (as TransitionBatch)"""
+    reward: np.ndarray
+    """float32 [T]"""
+    terminated: np.ndarray
+    """bool [T]"""
+    truncated: np.ndarray
+    """bool [T]"""
+    episode_id: np.ndarray
+    """int64 [T]"""
+    step: np.ndarray
+    """int32 [T]"""
+    labels: np.ndarray | None = None
+    """uint8 [F, H, W]: each pixel's object (0: background, 1 + k: object k), when the renderer knows them
+    (the exact masks that stand in for a segmentation model's, for the mask prior of eq. 7.1)"""
+
+    def __len__(self) -> int:
+        return int(self.state_frame.shape[0])
 
 
 @dataclass(frozen=True)
@@ -226,5 +265,5 @@ class ServiceStats:
 
 MESSAGE_TYPES: dict[str, type] = {
     cls.TYPE: cls
-    for cls in (EnvSpec, TransitionBatch, ScoredBatch, Weights, GraphReport, LocalGraphReport, Control, ServiceStats)
+    for cls in (EnvSpec, TransitionBatch, FrameBatch, ScoredBatch, Weights, GraphReport, LocalGraphReport, Control, ServiceStats)
 }

@@ -26,6 +26,19 @@ def transitions(run: str, worker: str = "*") -> str:
     return f"{ROOT}/{run}/transitions/{worker}"
 
 
+def frames(run: str, worker: str = "*") -> str:
+    """Frames of env-worker ``worker`` (FrameBatch), for the factor-extractor."""
+    _check(run, worker)
+    return f"{ROOT}/{run}/frames/{worker}"
+
+
+def frames_spec(run: str) -> str:
+    """The EnvSpec of env-workers that publish frames (queryable); ``env/spec`` is then the
+    factor-extractor's spec of the slot factors it publishes as transitions."""
+    _check(run)
+    return f"{ROOT}/{run}/env/frames"
+
+
 def scored(run: str, worker: str = "*") -> str:
     _check(run, worker)
     return f"{ROOT}/{run}/scored/{worker}"

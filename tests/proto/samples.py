@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
-from proto import ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
+from proto import FrameBatch, ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
 
 Mutation = Callable[[dict[str, Any]], None]
@@ -36,6 +36,20 @@ def transitions(t: int = 4, s: int = 3, a: int = 2, d: int = 2) -> TransitionBat
         episode_id=np.full(t, 11, np.int64), step=np.arange(t, dtype=np.int32),
         local_graph=rng.integers(0, 2, size=(t, d, d + 1), dtype=np.uint8),
         option=np.r_[2, -1, -1, 0][:t].astype(np.int32),
+    )
+
+
+def frame_batch(t: int = 4, size: int = 8) -> FrameBatch:
+    """``t`` steps over ``t + 2`` frames: an episode ends after step 1 and the next starts from a reset frame."""
+    rng = np.random.default_rng(1)
+    frames = rng.integers(0, 256, size=(t + 2, size, size, 3), dtype=np.uint8)
+    state_frame = np.r_[0, 1, 3:t + 1].astype(np.int32)[:t]
+    next_frame = np.r_[1, 2, 4:t + 2].astype(np.int32)[:t]
+    return FrameBatch(
+        worker_id="w0", seq=3, policy_version=0, frames=frames, state_frame=state_frame, next_frame=next_frame,
+        action=rng.integers(0, 4, size=(t, 1)).astype(np.float32), reward=np.zeros(t, np.float32),
+        terminated=np.zeros(t, bool), truncated=np.arange(t) == 1, episode_id=np.r_[0, 0, [1] * (t - 2)].astype(np.int64),
+        step=np.r_[0, 1, range(t - 2)].astype(np.int32), labels=rng.integers(0, 3, size=(t + 2, size, size), dtype=np.uint8),
     )
 
 
@@ -100,7 +114,7 @@ def stats() -> ServiceStats:
 
 
 SAMPLES: dict[type, Callable[[], Any]] = {
-    EnvSpec: env_spec, TransitionBatch: transitions, ScoredBatch: scored, Weights: weights,
+    EnvSpec: env_spec, TransitionBatch: transitions, FrameBatch: frame_batch, ScoredBatch: scored, Weights: weights,
     GraphReport: graph_report, LocalGraphReport: local_report, Control: control, ServiceStats: stats,
 }
 
