@@ -39,6 +39,9 @@ class _Metrics:
         self.ratio = m.gauge("causeway_dynamics_updates_per_env_step", "Updates per env step ingested so far")
         self.nonfinite = m.counter("causeway_dynamics_nonfinite_updates",
                                    "Updates skipped because the loss or gradient was not finite")
+        self.live = m.gauge("causeway_dynamics_live_score",
+                            "A score the trainer gives its model on fixed unseen data every few updates, by name "
+                            "(FLAM: psnr in dB, dci_d, dci_c, dci_i ratios, slot<k>_kl in nats)", ("name",))
         self.ratio_wait = m.counter("causeway_dynamics_ratio_wait_seconds",
                                     "Seconds the learner waited for env steps at --updates-per-env-step")
 
@@ -110,6 +113,8 @@ def _train(core: DynamicsLearnerCore, metrics: _Metrics) -> None:
     for term, value in stats.items():
         if term.startswith("nll_"):
             metrics.nll.labels(term=term.removeprefix("nll_")).set(value)
+        elif term.startswith("live_"):
+            metrics.live.labels(name=term.removeprefix("live_")).set(value)
 
 
 def _wait_for_transitions(core: DynamicsLearnerCore, transitions: Inbox, shell: ServiceShell, metrics: _Metrics) -> None:

@@ -4,7 +4,6 @@ from the run's transitions, beats the live scores, and ``summary.json`` carries 
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
