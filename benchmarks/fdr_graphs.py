@@ -6,9 +6,11 @@ Per graph and seed: CDL trained offline on uniformly random transitions (eq. 3.3
 parents refreshed from the CMI graph every few hundred updates, as the services do), then every
 entry's CMI and standard error from the per-sample log-likelihood ratios of ``--heldout`` held-out
 transitions (:mod:`causal.edge_tests`), and three graphs: edges at CMI >= 0.02 (the chapter's),
-Benjamini-Hochberg at ``--fdr`` on ``CMI > --min-cmi``, and the oracle (the best-threshold F1, which
-needs the truth). Also how the recall of the weak true edges (model CMI < 0.02) grows with the
-held-out data the tests see.
+Benjamini-Hochberg at ``--fdr`` on ``CMI > --min-cmi``, Benjamini-Hochberg at ``--fdr`` on ``CMI > null``
+with the bias estimated per entry from the same input permuted across the held-out samples
+(``bias="permuted"``, :mod:`causal.edge_tests`), and the oracle (the best-threshold F1, which needs
+the truth). Also how the recall of the weak true edges (model CMI < 0.02) grows with the held-out
+data the tests see, under both.
 
     python -m benchmarks.fdr_graphs [--graphs collider chain full envs/dags/random10.json random:10:20:1
         random:10:25:2] [--seeds 0 1 2] [--updates 4000] [--fdr 0.05] [--min-cmi 0.005]
@@ -27,6 +29,7 @@ import torch
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.edge_tests import EdgeEstimate, fdr_graph
+from causal.methods.cdl import permuted_terms
 from causal.factored import FactorLayout
 from causal.generalisation import random_transitions
 from causal.graph_metrics import binary_scores, score_graph, scored_entries
@@ -76,36 +79,64 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
     trainer = train(kwargs, train_set.tensors(), args.updates, seed)
     held = tuple(x[: max(HELDOUT_SIZES)] for x in held_set.tensors())
     gains = trainer.model.pointwise_cmi(*held).numpy()
-    estimate = EdgeEstimate.from_pointwise(gains)
+    order = torch.from_numpy(np.random.default_rng(seed + 1).permutation(len(held[0])))
+    permuted = permuted_terms(trainer.model, *held, held[0][order], held[1][order]).numpy()
+    estimate = EdgeEstimate.from_pointwise(gains, permuted)
     oracle = score_graph(estimate.cmi, truth, 0.02)
     weak = truth & scored_entries(truth.shape) & (estimate.cmi < 0.02)
-    recall_weak = {n: float((fdr_graph(EdgeEstimate.from_pointwise(gains[:n]), args.fdr, args.min_cmi) & weak).sum()
-                            / max(weak.sum(), 1)) for n in HELDOUT_SIZES}
+
+    def recall_weak(bias: str) -> dict[int, float]:
+        return {n: float((fdr_graph(EdgeEstimate.from_pointwise(gains[:n], permuted[:n]), args.fdr, args.min_cmi, bias)
+                          & weak).sum() / max(weak.sum(), 1)) for n in HELDOUT_SIZES}
+
+    def false(graph: np.ndarray) -> list[list[float]]:
+        return [[int(j), int(i), round(float(estimate.cmi[j, i]), 6), round(float(estimate.stderr[j, i]), 6),
+                 round(float(estimate.null[j, i]), 6), round(float(estimate.excess_stderr[j, i]), 6)]
+                for j, i in zip(*np.nonzero(graph & ~truth & scored_entries(truth.shape)))]
+
     tested = fdr_graph(estimate, args.fdr, args.min_cmi)
-    false = [[int(j), int(i), round(float(estimate.cmi[j, i]), 6), round(float(estimate.stderr[j, i]), 6)]
-             for j, i in zip(*np.nonzero(tested & ~truth))]
-    return {"graph": graph, "seed": seed, "true_edges": int((truth & scored_entries(truth.shape)).sum()),
-            "false_discoveries": false,
+    nulled = fdr_graph(estimate, args.fdr, 0.0, "permuted")
+    pooled = fdr_graph(estimate, args.fdr, 0.0, "pooled")
+    non_edges = ~truth & scored_entries(truth.shape)
+    return {"graph": graph, "seed": seed, "updates": args.updates,
+            "true_edges": int((truth & scored_entries(truth.shape)).sum()),
+            "false_discoveries": false(tested), "false_discoveries_permuted": false(nulled),
+            "false_discoveries_pooled": false(pooled), "fdr_pooled": scores(pooled, truth),
             "weak_true_edges": int(weak.sum()), "fixed": scores(estimate.cmi >= 0.02, truth),
-            "fdr_graph": scores(tested, truth),
-            "oracle_f1": oracle["best_threshold_f1"], "weak_recall_by_heldout": recall_weak,
+            "fdr_graph": scores(tested, truth), "fdr_permuted": scores(nulled, truth),
+            "oracle_f1": oracle["best_threshold_f1"], "weak_recall_by_heldout": recall_weak("fixed"),
+            "weak_recall_by_heldout_permuted": recall_weak("permuted"),
+            "weak_recall_by_heldout_pooled": recall_weak("pooled"),
+            "non_edge_cmi_mean": float(estimate.cmi[non_edges].mean()),
+            "non_edge_null_mean": float(estimate.null[non_edges].mean()),
             "by_min_cmi": {str(m): scores(fdr_graph(estimate, args.fdr, m), truth) for m in MIN_CMI_SWEEP}}
 
 
-def table(rows: list[dict[str, Any]], fdr: float) -> str:
-    lines = [f"| graph | seeds | true edges (weak) | F1 fixed 0.02 | F1 FDR {fdr} | F1 oracle | FDR reached | "
-             f"weak-edge recall at {' / '.join(f'{n // 1000}k' for n in HELDOUT_SIZES)} held-out |",
-             "|---|---|---|---|---|---|---|---|"]
+RULES = (("fixed", "fixed 0.02"), ("fdr_graph", "FDR, min_cmi"), ("fdr_permuted", "FDR, permuted null"),
+         ("fdr_pooled", "FDR, pooled null"))
+
+
+def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
+    """Mean ± sd over seeds per graph: F1 of each rule and the oracle, the FDR reached by each test."""
+    names = [name.replace("min_cmi", f"min_cmi {min_cmi}") for _, name in RULES]
+    lines = ["| graph | seeds | true edges (weak) | " + " | ".join(f"F1 {n}" for n in names) + " | F1 oracle | "
+             f"FDR reached at {fdr} ({' / '.join(n.split(', ')[-1] for n in names[1:])}) | weak-edge recall, "
+             f"{' / '.join(f'{n // 1000}k' for n in HELDOUT_SIZES)} held-out ({' ; '.join(n.split(', ')[-1] for n in names[1:])}) |",
+             "|---|---|---|" + "---|" * (len(RULES) + 3)]
     for graph in dict.fromkeys(r["graph"] for r in rows):
         mine = [r for r in rows if r["graph"] == graph]
 
         def ms(values: list[float]) -> str:
             return f"{np.mean(values):.3f} ± {np.std(values, ddof=1) if len(values) > 1 else 0.0:.3f}"
 
-        weak = " / ".join(f"{np.mean([r['weak_recall_by_heldout'][n] for r in mine]):.2f}" for n in HELDOUT_SIZES)
+        def weak(key: str) -> str:
+            return " / ".join(f"{np.mean([r[key][str(n)] for r in mine]):.2f}" for n in HELDOUT_SIZES)
+
         lines.append(f"| {graph} | {len(mine)} | {mine[0]['true_edges']} ({np.mean([r['weak_true_edges'] for r in mine]):.1f}) | "
-                     f"{ms([r['fixed']['f1'] for r in mine])} | {ms([r['fdr_graph']['f1'] for r in mine])} | "
-                     f"{ms([r['oracle_f1'] for r in mine])} | {ms([r['fdr_graph']['fdr'] for r in mine])} | {weak} |")
+                     + " | ".join(ms([r[key]["f1"] for r in mine]) for key, _ in RULES)
+                     + f" | {ms([r['oracle_f1'] for r in mine])} | "
+                     + " / ".join(ms([r[key]["fdr"] for r in mine]) for key, _ in RULES[1:]) + " | "
+                     + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in ("", "_permuted", "_pooled")) + " |")
     return "\n".join(lines)
 
 
@@ -119,7 +150,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--fdr", type=float, default=0.05)
     p.add_argument("--min-cmi", type=float, default=5e-3)
     p.add_argument("--out", type=Path, default=Path("benchmark-results/fdr"))
+    p.add_argument("--table", nargs="+", type=Path, default=[],
+                   help="only print the table of these fdr.json files (earlier runs), run nothing")
     args = p.parse_args(argv)
+    if args.table:
+        print(table([row for path in args.table for row in json.loads(path.read_text())], args.fdr, args.min_cmi))
+        return
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -128,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(one(graph, args.objects, seed, args))
             print(json.dumps(rows[-1]), flush=True)
     (args.out / "fdr.json").write_text(json.dumps(rows, indent=1))
-    print(table(rows, args.fdr))
+    print(table(json.loads(json.dumps(rows)), args.fdr, args.min_cmi))
 
 
 if __name__ == "__main__":

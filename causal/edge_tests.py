@@ -41,14 +41,23 @@ says which non-edges are still undecided (their interval of ``CMI - null`` reach
 * **Exchangeability.** For a non-edge (``s'_j`` independent of ``s_i`` given the other inputs) the
   permuted sample has the same distribution as the real one only if ``s_i`` is also independent of the
   other inputs; then ``E[CMI - null] = 0`` exactly, whatever the model's bias, and the test has its
-  level. Uniformly random transitions (``benchmarks.fdr_graphs``) satisfy it. On-policy data, where a
-  factor's value depends on the others (an agent next to the object it carries), does not: permuting
-  makes inputs the model never saw, its loss there is positive for non-edges too, and the test
-  over-rejects. A conditional permutation would be needed there; we do not have one.
+  level. Transitions from episodes break it: in Chemical a colour spreads along the graph, so an
+  object's colour depends on its ancestors' at the same step, permuting it makes inputs the model
+  never saw, and where the model leans a little on a correlated non-parent (a proxy of its parent)
+  the permutation costs likelihood while dropping it does not. The test then over-rejects; a
+  conditional permutation would be needed, and we do not have one.
+
 * **Samples independent across the permutation.** The paired differences of samples ``b`` and
   ``perm(b)`` share a value, so they are not quite independent; with thousands of samples and a
   random permutation the standard error from their spread is taken as is.
 * The null is one permutation, drawn afresh per estimate (the evaluator's generator, seeded).
+
+``bias="pooled"`` is the cautious variant: every entry of output ``j`` is tested against the largest
+null of that output over its other inputs (with both standard errors), the bias of the input the
+output uses least. It assumes the bias is mostly the output's (the drop-one model of output ``j`` is
+trained less, whichever input is dropped) and that output ``j`` has at least one input it does not
+use; a true edge's null is far below 0 (the full model leans on it), so edges do not set the level.
+It gives up some power (the largest of several noisy nulls sits above the bias).
 """
 from __future__ import annotations
 
@@ -59,9 +68,10 @@ import numpy as np
 
 from proto.messages import EDGE_RULES
 
-BIASES = ("fixed", "permuted")
+BIASES = ("fixed", "permuted", "pooled")
 """How the fdr rule allows for the learned model's bias: ``fixed`` tests ``CMI > min_cmi``;
-``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input."""
+``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input; ``pooled``
+tests ``CMI > `` the largest null of the entry's output (see the module's docstring)."""
 
 __all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "undecided"]
 
@@ -112,11 +122,23 @@ class EdgeEstimate:
         """A two-sided normal confidence interval (95% by default)."""
         return self.cmi - z * self.stderr, self.cmi + z * self.stderr
 
-    def excess(self) -> tuple[np.ndarray, np.ndarray]:
-        """``cmi - null`` and its standard error (ValueError without the null)."""
+    def excess(self, bias: str = "permuted") -> tuple[np.ndarray, np.ndarray]:
+        """``cmi`` above the estimated bias and its standard error (ValueError without the null).
+
+        ``permuted``: ``cmi - null`` per entry, from the paired per-sample differences. ``pooled``:
+        ``cmi - max_i null[j, i]`` (over the inputs of output ``j`` but itself), with the standard
+        errors of the two added in quadrature, the null's taken as ``stderr + excess_stderr`` at
+        its arg-max (an upper bound on the standard error of ``cmi - (cmi - null)``, whatever
+        the correlation of the two terms)."""
         if self.null is None or self.excess_stderr is None:
             raise ValueError("this estimate has no permuted-input null (estimate it with a generator)")
-        return self.cmi - self.null, self.excess_stderr
+        if bias == "permuted":
+            return self.cmi - self.null, self.excess_stderr
+        others = np.where(np.eye(*self.null.shape, dtype=bool), -np.inf, self.null)
+        top = others.argmax(axis=1)[:, None]
+        level = np.take_along_axis(self.null, top, axis=1)
+        level_se = np.take_along_axis(self.stderr + self.excess_stderr, top, axis=1)
+        return self.cmi - level, np.sqrt(self.stderr**2 + level_se**2)
 
 
 def _one_sided(excess: np.ndarray, stderr: np.ndarray) -> np.ndarray:
@@ -130,8 +152,8 @@ def p_values(estimate: EdgeEstimate, min_cmi: float, bias: str = "fixed") -> np.
     (``"permuted"``); 0 or 1 where the standard error is 0."""
     if bias not in BIASES:
         raise ValueError(f"bias must be one of {BIASES}, got {bias!r}")
-    if bias == "permuted":
-        return _one_sided(*estimate.excess())
+    if bias != "fixed":
+        return _one_sided(*estimate.excess(bias))
     return _one_sided(estimate.cmi - min_cmi, estimate.stderr)
 
 
@@ -170,7 +192,7 @@ def decide(estimate: EdgeEstimate, rule: str, threshold: float, fdr: float, min_
     ``fixed``: edge if ``cmi >= threshold``; undecided where the interval contains ``threshold``.
     ``fdr``: edge if the test rejects at ``fdr`` (:func:`fdr_graph`; ``bias`` says which test);
     undecided is an entry that is not an edge yet whose interval reaches ``min_cmi`` (of ``cmi``, or
-    of ``cmi - null`` under ``bias="permuted"``): neither shown to be an edge nor shown to be below
+    of ``cmi`` less the estimated bias otherwise): neither shown to be an edge nor shown to be below
     the smallest effect that counts. Either way more held-out data decides it."""
     if rule not in EDGE_RULES:
         raise ValueError(f"edge rule must be one of {EDGE_RULES}, got {rule!r}")
@@ -178,5 +200,5 @@ def decide(estimate: EdgeEstimate, rule: str, threshold: float, fdr: float, min_
     if rule == "fixed":
         return (estimate.cmi >= threshold) & off, undecided(estimate, threshold, z) & off
     edges = fdr_graph(estimate, fdr, min_cmi, bias)
-    excess, stderr = estimate.excess() if bias == "permuted" else (estimate.cmi, estimate.stderr)
+    excess, stderr = estimate.excess(bias) if bias != "fixed" else (estimate.cmi, estimate.stderr)
     return edges, ~edges & (excess + z * stderr >= min_cmi) & off

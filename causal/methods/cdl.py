@@ -58,6 +58,7 @@ class CMIGraph:
         return estimate
 
 
+@torch.no_grad()
 def permuted_terms(model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
                    other_state: torch.Tensor, other_action: torch.Tensor, chunk: int = 256) -> torch.Tensor:
     """Per-sample ``CMI - null`` terms (:meth:`CDLModel.permuted_gain`), ``[B, J, I]`` graph order."""
