@@ -16,9 +16,13 @@ Who publishes and who subscribes, per role (``<run>`` elided; ``<m>`` is the run
 | graph-evaluator | graph/<m>, local/<m> | transitions/*, weights/<m> | graph/<m>, local/<m> | weights/<m>, env/spec | token |
 | intrinsic-reward | scored/* | transitions/*, weights/<m>, graph/<m> | | weights/<m>, graph/<m>, env/spec | token |
 | policy-learner | weights/policy | transitions/* or scored/*, graph/<m> | weights/policy | env/spec | token |
+| factor-extractor (runs with frames) | transitions/*, env/spec | frames/* | env/spec | env/frames | token |
 | dashboard | | graph/*, local/*, stats/** of the watched runs | | graph/*, local/* | token |
 | supervisor | control/all, control/env-worker | stats/**, graph/*, local/* | | | token |
 | operator | control/* | stats/** | | | watches and queries alive/** |
+
+In a run with frames (``--worker-publish-frames``) the env-worker publishes frames/* instead of
+transitions/* and serves its spec on env/frames; the factor-extractor role exists only in such a run.
 
 Every service also publishes ``stats/<service>/*`` and subscribes to ``control/<service>`` and
 ``control/all``. How a capability becomes Zenoh ACL messages and flows (ingress: from the client to
@@ -53,6 +57,8 @@ SERVICES = ("env-worker", "dynamics-learner", "graph-evaluator", "intrinsic-rewa
             "dashboard")
 """Roles of the service processes; each service's processes share its role."""
 ROLES = SERVICES + ("supervisor", "operator")
+FRAMES_ROLE = "factor-extractor"
+"""The role of a run with frames only (:func:`run_roles` with ``frames=True``)."""
 POLICY_MODEL = "policy"
 """The policy-learner's weights topic segment (``causal.rl.policy_weights.MODEL``)."""
 
@@ -94,17 +100,23 @@ def _service(run: str, name: str, *, publish: tuple[str, ...] = (), subscribe: t
                 tokens=(topics.alive(run, name),))
 
 
-def run_roles(run: str, method: str, dashboard_run: str | None = None) -> dict[str, Role]:
+def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: bool = False) -> dict[str, Role]:
     """Every role of run ``run`` whose learner, evaluator and reward use ``method``.
 
     ``dashboard_run`` is the run the dashboard shows (``*``: every run on the router; default ``run``).
+    ``frames``: the env-workers publish frames, a factor-extractor turns them into transitions.
     """
     shown = run if dashboard_run is None else dashboard_run
     weights, policy = topics.weights(run, method), topics.weights(run, POLICY_MODEL)
     graph, local = topics.graph(run, method), topics.local(run, method)
     transitions, scored = topics.transitions(run), topics.scored(run)
-    roles = (
-        _service(run, "env-worker", publish=(transitions,), subscribe=(policy,), serve=(topics.env_spec(run),),
+    worker_publish, worker_spec = (topics.frames(run),), topics.frames_spec(run)
+    if not frames:
+        worker_publish, worker_spec = (transitions,), topics.env_spec(run)
+    extractor = (_service(run, FRAMES_ROLE, publish=(transitions,), subscribe=(topics.frames(run),),
+                          serve=(topics.env_spec(run),), query=(topics.frames_spec(run),), spec=False),) if frames else ()
+    roles = extractor + (
+        _service(run, "env-worker", publish=worker_publish, subscribe=(policy,), serve=(worker_spec,),
                  query=(policy,), spec=False),
         _service(run, "dynamics-learner", subscribe=(transitions, graph), serve=(weights,)),
         _service(run, "graph-evaluator", subscribe=(transitions, weights), serve=(graph, local), query=(weights,)),

@@ -21,6 +21,9 @@ class EnvWorkerConfig(ServiceConfig):
     max_steps: int = doc(0, "stop after this many env steps (0: never)")
     local_graphs: bool = doc(False, "attach the simulator's ground-truth local graphs to each batch")
     follow_policy: bool = doc(False, "act with the newest policy weights (weights/policy); random until they arrive")
+    publish_frames: bool = doc(False, "publish the steps as frames (FrameBatch on frames/<worker>, for the factor-extractor) "
+                                      "instead of transitions; the env must render them (chemical-pixels)")
+    frame_stride: int = doc(1, "publish_frames: keep every n-th pixel along each side of a frame (downsampling)")
     policy_poll_s: float = doc(5.0, "follow_policy: also ask for the latest policy this often, so a missed update is caught")
 
     def __post_init__(self) -> None:
@@ -29,5 +32,7 @@ class EnvWorkerConfig(ServiceConfig):
             raise ValueError(f"batch_steps must be in [1, 65536], got {self.batch_steps}")
         if self.max_steps_per_second < 0 or self.max_steps < 0:
             raise ValueError("max_steps_per_second and max_steps must be >= 0")
+        if self.frame_stride < 1:
+            raise ValueError(f"frame_stride must be >= 1, got {self.frame_stride}")
         if self.worker_index < -1:
             raise ValueError(f"worker_index must be >= 0 (or -1: from the hostname), got {self.worker_index}")

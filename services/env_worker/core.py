@@ -11,9 +11,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from envs.registry import EnvEntry, env_entry
-from proto.messages import EnvSpec, TransitionBatch, Weights
+from proto.messages import EnvSpec, FrameBatch, TransitionBatch, Weights
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.episodes import EpisodeStats
+from services.env_worker.frames import FrameRecorder
 from services.runtime.accept import VersionGate, check_tensor_shapes
 
 if TYPE_CHECKING:
@@ -176,7 +177,8 @@ class EnvWorkerCore:
         seed = cfg.seed + cfg.worker_index + GENERATION_SEED_STRIDE * generation
         self.random_policy = default_policy(self.entry, self.env.action_space, seed)
         self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())
-        self.observation, _ = self.env.reset(seed=seed)
+        self.observation, info = self.env.reset(seed=seed)
+        self.recorder = FrameRecorder(info, cfg.frame_stride) if cfg.publish_frames else None
         self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
         self.episode, self.step_in_episode = GENERATION_EPISODES * generation, 0
         self.env_steps, self.seq = 0, 0
@@ -207,6 +209,8 @@ class EnvWorkerCore:
         graphs = np.empty((steps, self.spec.num_factors, self.spec.num_factors + 1), np.uint8) if self.cfg.local_graphs else None
         policy = self.policy
         option = np.full(steps, -1, np.int32) if policy.over_skills else None
+        if self.recorder is not None:
+            self.recorder.begin()
         for t in range(steps):
             act = policy.act(self.observation)
             if option is not None:
@@ -220,10 +224,13 @@ class EnvWorkerCore:
             self.step_in_episode += 1
             self.observation = obs
             self.episodes.step(r, info, term or trunc)
+            reset_info = None
             if term or trunc:
                 policy.reset()  # a policy over skills starts the next episode with a fresh decision
-                self.observation, _ = self.env.reset()
+                self.observation, reset_info = self.env.reset()
                 self.episode, self.step_in_episode = self.episode + 1, 0
+            if self.recorder is not None:
+                self.recorder.record(info, reset_info)
         self.env_steps += steps
         batch = TransitionBatch(worker_id=self.worker_id, seq=self.seq, policy_version=policy.version,
                                 state=state, action=action, reward=reward, next_state=next_state,
@@ -231,3 +238,9 @@ class EnvWorkerCore:
                                 local_graph=graphs, option=option)
         self.seq += 1
         return batch
+
+    def collect_frames(self, steps: int | None = None) -> FrameBatch:
+        """As :meth:`collect`, the steps as frames (``publish_frames``): a FrameBatch for the factor-extractor."""
+        if self.recorder is None:
+            raise RuntimeError("this worker does not record frames (publish_frames is off)")
+        return self.recorder.pack(self.collect(steps))

@@ -37,7 +37,8 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     steps = shell.metrics.counter("causeway_env_steps", "Environment steps taken")
     episodes = shell.metrics.counter("causeway_env_episodes", "Episodes finished")
     batches = shell.metrics.counter("causeway_transition_batches_published", "TransitionBatches published")
-    sent = shell.metrics.counter("causeway_transition_bytes_published", "Bytes of TransitionBatches published")
+    sent = shell.metrics.counter("causeway_transition_bytes_published",
+                                 "Bytes of TransitionBatches (FrameBatches with --publish-frames) published")
     options = shell.metrics.counter("causeway_skill_options_chosen",
                                     "Skills started by a collection policy over skills, by option and policy "
                                     "(uniform: the chapter's Uniform skills; learned: published policy weights)",
@@ -45,10 +46,15 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     chosen: dict[str, int] = {}
     publish_seconds = shell.metrics.histogram("causeway_publish_seconds", "Time to publish one batch",
                                               (0.0005, 0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0))
-    spec_value = shell.transport.serve_latest(topics.env_spec(cfg.run_id))
+    # With frames, env/spec is the factor-extractor's (slot factors); the env's own spec is env/frames.
+    spec_key = topics.frames_spec(cfg.run_id) if cfg.publish_frames else topics.env_spec(cfg.run_id)
+    spec_value = shell.transport.serve_latest(spec_key)
     spec_value.set(encode(core.spec))
     follower = _PolicyFollower(shell, core, cfg) if cfg.follow_policy else None
-    topic = topics.transitions(cfg.run_id, core.worker_id)
+    if cfg.publish_frames:
+        topic, collect = topics.frames(cfg.run_id, core.worker_id), core.collect_frames
+    else:
+        topic, collect = topics.transitions(cfg.run_id, core.worker_id), core.collect
     started, last_episode = time.monotonic(), 0
     try:
         while not shell.stopping.is_set():
@@ -58,7 +64,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                 continue
             if follower is not None:
                 follower.update()
-            batch = core.collect()
+            batch = collect()
             t0 = time.perf_counter()
             sent.inc(shell.publish(topic, batch))
             publish_seconds.observe(time.perf_counter() - t0)
@@ -138,9 +144,10 @@ class _PolicyFollower:
 
 def option_counts(batch, names: tuple[str, ...]) -> dict[tuple[str, str], int]:
     """Skills started in ``batch`` by (option name of ``names``, ``uniform`` or ``learned``); {} without options."""
-    if batch.option is None or not names:
+    option = getattr(batch, "option", None)  # a FrameBatch carries none
+    if option is None or not names:
         return {}
-    counts = np.bincount(batch.option[batch.option >= 0], minlength=len(names))
+    counts = np.bincount(option[option >= 0], minlength=len(names))
     policy = "learned" if batch.policy_version > 0 else "uniform"
     return {(names[i], policy): int(n) for i, n in enumerate(counts) if n}
 

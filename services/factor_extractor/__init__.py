@@ -1,0 +1,1 @@
+"""factor-extractor: frames in, slot factors out as transitions (Dyn-O, chapter 7)."""

@@ -1,0 +1,3 @@
+from services.factor_extractor.service import main
+
+main()

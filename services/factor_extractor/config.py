@@ -1,0 +1,37 @@
+"""factor-extractor configuration."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from causal.slots import SlotConfig
+from proto.settings import section
+from services.runtime.config import ServiceConfig, doc
+
+
+@dataclass(frozen=True)
+class FactorExtractorConfig(ServiceConfig):
+    """factor-extractor: learns Dyn-O's slots (eq. 7.1) from the env-workers' frames, freezes them, then
+    publishes every FrameBatch as a TransitionBatch of slot factors."""
+
+    num_slots: int = doc(0, "K: slots per frame; 0 = objects + 1 (one per object of the env's spec and the background)")
+    slot: SlotConfig = section(SlotConfig, prefix="slot", exclude=("num_slots",), slot_dim=16,
+                               help="the slot representation (eq. 7.1); d_xi 16 keeps CDL's input over K slots small")
+    ae_updates: int = doc(300, "phase 1: frame-autoencoder updates (then frozen)")
+    ae_lr: float = doc(1e-3, "Adam learning rate of the frame autoencoder")
+    slot_updates: int = doc(1500, "phase 2: slot updates, U of the mask-drop schedule; then the slots are frozen "
+                                  "and transitions are published")
+    replay_frames: int = doc(8192, "frames kept for learning the slots (oldest dropped)")
+    warmup_frames: int = doc(256, "frames to hold before the first update")
+    statistics_frames: int = doc(1024, "frames whose slots set the spec's per-slot loc and scale once frozen")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.num_slots < 0 or min(self.ae_updates, self.slot_updates) < 0:
+            raise ValueError("num_slots, ae_updates and slot_updates must be >= 0")
+        if min(self.replay_frames, self.warmup_frames, self.statistics_frames) < 1:
+            raise ValueError("replay_frames, warmup_frames and statistics_frames must be >= 1")
+        if self.warmup_frames > self.replay_frames:
+            raise ValueError(f"warmup_frames ({self.warmup_frames}) must be <= replay_frames ({self.replay_frames})")
+        if not (math.isfinite(self.ae_lr) and self.ae_lr > 0):
+            raise ValueError(f"ae_lr must be a positive finite number, got {self.ae_lr}")
