@@ -186,37 +186,51 @@ class ImplicitDynamics(nn.Module):
             generator: torch.Generator | None = None, zero_constant_inputs: bool = True) -> torch.Tensor:
         """CMI^{ij} of every output j and input i (eq. 4.3), averaged over the samples: ``[J, I]`` nats,
         graph column order. Inputs constant over the samples get 0 (as :meth:`CDLModel.cmi`)."""
+        total, _ = self.cmi_sums(state, action, next_state, num_negatives, generator, zero_constant_inputs)
+        return (total / max(state.shape[0], 1)).to(torch.float32)
+
+    @torch.no_grad()
+    def cmi_sums(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor, num_negatives: int,
+                 generator: torch.Generator | None = None,
+                 zero_constant_inputs: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """The sums over the samples of eq. 4.3's per-sample terms and of their squares, ``[J, I]`` float64,
+        graph column order (their mean is :meth:`cmi`; with the squares, its standard error over the
+        transitions, the negatives held fixed). Constant inputs get 0 in both."""
         j, i = self.layout.num_factors, self.layout.num_factors + 1
         negatives = self.negatives(num_negatives, generator) if self.codec.cont_factors else None
         chunk = max(1, CHUNK_ELEMENTS // (j * (i + 1) * min(num_negatives, 1024)))
-        total = torch.zeros(j, i)
+        total = torch.zeros(j, i, dtype=torch.float64)
+        squares = torch.zeros_like(total)
         for start in range(0, state.shape[0], chunk):
             s, a, n = (t[start : start + chunk] for t in (state, action, next_state))
-            total += self._cmi_sum(s, a, n, negatives)
-        cmi = self.features.to_graph_order(total / max(state.shape[0], 1))
+            terms = self._cmi_terms(s, a, n, negatives).double().cpu()
+            total += terms.sum(-1)
+            squares += terms.square().sum(-1)
+        total, squares = self.features.to_graph_order(total), self.features.to_graph_order(squares)
         if zero_constant_inputs and state.shape[0]:
-            cmi[:, constant_inputs(self.layout, state, action)] = 0.0
-        return cmi
+            constant = constant_inputs(self.layout, state, action).cpu()
+            total[:, constant], squares[:, constant] = 0.0, 0.0
+        return total, squares
 
-    def _cmi_sum(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
-                 negatives: torch.Tensor | None) -> torch.Tensor:
-        """Summed over these samples: CMI of every (output, input), group order ``[J, I]``."""
+    def _cmi_terms(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                   negatives: torch.Tensor | None) -> torch.Tensor:
+        """Eq. 4.3's term of every (output, input) and sample, group order ``[J, I, B]``."""
         first, runner_up, is_max = max_and_runner_up(self.features(state, action))
         u = self.embeddings(torch.cat([first, torch.where(is_max, runner_up, first)], dim=1))  # [J, 1+I, B, E]
-        out = u.new_zeros(u.shape[0], u.shape[1] - 1)
+        out = u.new_zeros(u.shape[0], u.shape[1] - 1, u.shape[2])
         codec = self.codec
         if codec.cont_factors:
             u_c = u[codec.cont_index]
             f_label = self.label_scores(u_c, self.codes(self.label_deltas(state, next_state))[0])
             lse = self._negatives_logsumexp(u_c, negatives)
             phi = f_label[:, :1] - f_label[:, 1:]
-            out[codec.cont_index] = cmi_from_sums(phi, lse[:, :1], lse[:, 1:], negatives.shape[1]).sum(-1)
+            out[codec.cont_index] = cmi_from_sums(phi, lse[:, :1], lse[:, 1:], negatives.shape[1])
         if codec.cat_factors:
             logits = self.class_logits(u[codec.cat_index])
             label = codec.categories(next_state).T.clamp_max(codec.max_cat - 1)
             index = label[:, None, :, None].expand(-1, logits.shape[1], -1, 1)
             logp = torch.log_softmax(logits, dim=-1).gather(-1, index).squeeze(-1)
-            out[codec.cat_index] = (logp[:, :1] - logp[:, 1:]).sum(-1)
+            out[codec.cat_index] = logp[:, :1] - logp[:, 1:]
         return out
 
     def _negatives_logsumexp(self, u: torch.Tensor, negatives: torch.Tensor) -> torch.Tensor:

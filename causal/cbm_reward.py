@@ -67,17 +67,39 @@ class CausalRewardModel(nn.Module):
         """Reward CMI of every input ``[I]`` (factors, then the action), nats: ``0.5 log(MSE_{-i} / MSE)``.
         Inputs constant over the samples get 0 (a constant carries no information), and every input
         gets 0 when the reward itself is constant (nothing to explain)."""
-        total = torch.zeros(self.layout.num_factors + 2, dtype=torch.float64)
+        return self.cmi_with_stderr(state, action, reward, chunk, zero_constant_inputs)[0]
+
+    @torch.no_grad()
+    def cmi_with_stderr(self, state: torch.Tensor, action: torch.Tensor, reward: torch.Tensor, chunk: int = 1024,
+                        zero_constant_inputs: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`cmi` and its standard error ``[I]`` over the samples, by the delta method: the CMI is
+        a function of two means of per-sample squared errors (full ``e0``, input ``i`` dropped ``ei``),
+        whose per-sample influence is ``0.5 (ei / mean(ei) - e0 / mean(e0))``; the standard error is
+        that term's spread over ``sqrt(n)``. Zero wherever :meth:`cmi` is set to 0."""
+        n_inputs = self.layout.num_factors + 1
+        sums = torch.zeros(n_inputs + 1, dtype=torch.float64)
+        squares = torch.zeros_like(sums)
+        cross = torch.zeros(n_inputs, dtype=torch.float64)
         for start in range(0, state.shape[0], chunk):
-            total += self.squared_errors(*(t[start : start + chunk] for t in (state, action, reward))).sum(dim=1)
+            errors = self.squared_errors(*(t[start : start + chunk] for t in (state, action, reward))).double()
+            sums += errors.sum(dim=1)
+            squares += errors.square().sum(dim=1)
+            cross += (errors[1:] * errors[:1]).sum(dim=1)
+        n = state.shape[0]
         spread = float(reward.to(torch.float64).var()) if reward.numel() > 1 else 0.0
         if spread <= 0.0:
-            return torch.zeros(self.layout.num_factors + 1)
-        mse = total / state.shape[0] + 1e-9 * spread  # floor: a reward fitted exactly stays finite
+            return torch.zeros(n_inputs), torch.zeros(n_inputs)
+        mse = sums / n + 1e-9 * spread  # floor: a reward fitted exactly stays finite
         cmi = (0.5 * torch.log(mse[1:] / mse[:1])).to(torch.float32)
+        variance = (squares / n - (sums / n).square()).clamp_min(0.0)
+        covariance = cross / n - sums[1:] * sums[:1] / n**2
+        influence = 0.25 * (variance[1:] / mse[1:] ** 2 + variance[:1] / mse[:1] ** 2
+                            - 2 * covariance / (mse[1:] * mse[:1]))
+        stderr = (influence.clamp_min(0.0) * n / max(n - 1, 1) / n).sqrt().to(torch.float32)
         if zero_constant_inputs:
-            cmi[constant_inputs(self.layout, state, action)] = 0.0
-        return cmi
+            constant = constant_inputs(self.layout, state, action)
+            cmi[constant], stderr[constant] = 0.0, 0.0
+        return cmi, stderr
 
     @staticmethod
     def nll(squared_errors: torch.Tensor) -> torch.Tensor:

@@ -73,7 +73,7 @@ BIASES = ("fixed", "permuted", "pooled")
 ``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input; ``pooled``
 tests ``CMI > `` the largest null of the entry's output (see the module's docstring)."""
 
-__all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "undecided"]
+__all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "tested_entries", "undecided"]
 
 
 @dataclass(frozen=True)
@@ -157,6 +157,14 @@ def p_values(estimate: EdgeEstimate, min_cmi: float, bias: str = "fixed") -> np.
     return _one_sided(estimate.cmi - min_cmi, estimate.stderr)
 
 
+def tested_entries(shape: tuple[int, ...]) -> np.ndarray:
+    """Which entries are tested: all but the self-edges of a dynamics graph ``[d_S, d_S + 1]``; every
+    entry of a reward graph ``[d_S + 1]``."""
+    if len(shape) == 1:
+        return np.ones(shape, dtype=bool)
+    return ~np.eye(*shape, dtype=bool)
+
+
 def benjamini_hochberg(p: np.ndarray, fdr: float) -> np.ndarray:
     """Which of ``p`` are discoveries at false-discovery rate ``fdr`` (step-up procedure)."""
     flat = np.asarray(p, dtype=np.float64).ravel()
@@ -171,9 +179,9 @@ def benjamini_hochberg(p: np.ndarray, fdr: float) -> np.ndarray:
 
 def fdr_graph(estimate: EdgeEstimate, fdr: float, min_cmi: float, bias: str = "fixed") -> np.ndarray:
     """The edges (bool ``[d_S, d_S + 1]``) whose tests (:func:`p_values`) reject at ``fdr``; the
-    self-edges are left out of the tests (kept by Assumption 4, added by the caller)."""
-    n = estimate.cmi.shape[0]
-    tested = ~np.eye(n, n + 1, dtype=bool)
+    self-edges are left out of the tests (kept by Assumption 4, added by the caller). A reward graph
+    (``[d_S + 1]``) has no self-edges: every entry is tested."""
+    tested = tested_entries(estimate.cmi.shape)
     out = np.zeros(estimate.cmi.shape, dtype=bool)
     out[tested] = benjamini_hochberg(p_values(estimate, min_cmi, bias)[tested], fdr)
     return out
@@ -196,7 +204,7 @@ def decide(estimate: EdgeEstimate, rule: str, threshold: float, fdr: float, min_
     the smallest effect that counts. Either way more held-out data decides it."""
     if rule not in EDGE_RULES:
         raise ValueError(f"edge rule must be one of {EDGE_RULES}, got {rule!r}")
-    off = ~np.eye(*estimate.cmi.shape, dtype=bool)
+    off = tested_entries(estimate.cmi.shape)
     if rule == "fixed":
         return (estimate.cmi >= threshold) & off, undecided(estimate, threshold, z) & off
     edges = fdr_graph(estimate, fdr, min_cmi, bias)

@@ -76,8 +76,19 @@ class EdgeEstimator(Protocol):
     entries, and can decide edges by tests at a false-discovery rate (:mod:`causal.edge_tests`)."""
 
     def estimate(self, model: nn.Module, state: torch.Tensor, action: torch.Tensor,
-                 next_state: torch.Tensor) -> EdgeEstimate:
-        """The scores of :meth:`GlobalGraphEstimator.scores` with their standard errors."""
+                 next_state: torch.Tensor, permute: torch.Generator | None = None) -> EdgeEstimate:
+        """The scores of :meth:`GlobalGraphEstimator.scores` with their standard errors; with
+        ``permute``, also the permuted-input null (:mod:`causal.edge_tests`; ValueError from an
+        estimator that cannot compute one)."""
+
+
+@runtime_checkable
+class RewardEdgeEstimator(Protocol):
+    """A reward-graph estimator that gives each entry a standard error too (CBM's reward CMI)."""
+
+    def estimate(self, model: nn.Module, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                 reward: torch.Tensor) -> EdgeEstimate:
+        """The scores of :meth:`RewardGraphEstimator.scores` ``[d_S + 1]`` with their standard errors."""
 
 
 def has_standard_errors(method: "Method") -> bool:

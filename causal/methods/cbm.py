@@ -15,7 +15,9 @@ import torch
 from causal.abstraction import minimal_abstraction
 from causal.cbm import CBMModel, CBMTrainer, model_from_config
 from causal.cbm_config import CBMConfig
+from causal.edge_tests import EdgeEstimate
 from causal.method import Method
+from causal.methods.cdl import CMIGraph
 from causal.planning import cdl_rollout_step
 from causal.rl import abstraction_input_mask
 
@@ -34,6 +36,24 @@ class DynamicsCMI:
     def threshold(self, model: CBMModel) -> float:
         return model.cfg.cmi_threshold
 
+    @torch.no_grad()
+    def estimate(self, model: CBMModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                 permute: torch.Generator | None = None) -> EdgeEstimate:
+        """:meth:`scores` with standard errors over the transitions: eq. 4.3's per-sample terms on the
+        same subsample and negatives (implicit; the negatives' own randomness is not in them), CDL's
+        per-sample log-likelihood ratios (explicit, where ``permute`` also gives the permuted-input
+        null; the implicit model has none: ValueError)."""
+        if not model.implicit:
+            return CMIGraph().estimate(model.dynamics, state, action, next_state, permute)
+        if permute is not None:
+            raise ValueError("CBM's implicit dynamics have no permuted-input null: use --evaluator-bias fixed")
+        limit = model.cfg.cmi_samples
+        if state.shape[0] > limit:
+            index = torch.randperm(state.shape[0], generator=self.generator)[:limit]
+            state, action, next_state = state[index], action[index], next_state[index]
+        total, squares = model.dynamics.cmi_sums(state, action, next_state, model.cfg.eval_negatives, self.generator)
+        return EdgeEstimate.from_sums(total.numpy(), squares.numpy(), state.shape[0])
+
 
 class RewardCMI:
     """Reward graph: CMI of the reward with every factor at t and the action (Assumption 7)."""
@@ -46,6 +66,12 @@ class RewardCMI:
 
     def threshold(self, model: CBMModel) -> float:
         return model.cfg.reward_threshold
+
+    def estimate(self, model: CBMModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                 reward: torch.Tensor) -> EdgeEstimate:
+        """:meth:`scores` with delta-method standard errors (:meth:`CausalRewardModel.cmi_with_stderr`)."""
+        cmi, stderr = model.reward.cmi_with_stderr(state, action, reward)
+        return EdgeEstimate(cmi.double().numpy(), stderr.double().numpy(), state.shape[0])
 
 
 def cbm_rollout_step(model: CBMModel, parents: torch.Tensor, factors: Sequence[int] | None = None
