@@ -32,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from causal.graph_metrics import score_local_graphs
+from causal.graph_metrics import score_local_graphs, score_local_graphs_per_entry
 from causal.methods import get_method
 from envs.registry import env_entry
 from services.supervisor.config import load_run_config
@@ -117,16 +117,27 @@ def estimators(method: str) -> dict[str, Any]:
     return found
 
 
-def evaluate(run_dir: Path, episodes: int) -> dict[str, Any]:
-    cfg = load_run_config(run_dir)
-    model = load_model(run_dir)
-    state, action, next_state, truth = scripted_transitions(cfg.env, env_kwargs(cfg), episodes)
+def score_estimators(method: str, model: Any, transitions: tuple[np.ndarray, ...]) -> dict[str, dict[str, float]]:
+    """Every estimator of ``method`` on ``model``, scored on ``transitions`` (:func:`scripted_transitions`):
+    pooled over entries (the table's figures), and per entry under ``per_entry``
+    (:func:`~causal.graph_metrics.score_local_graphs_per_entry`)."""
+    state, action, next_state, truth = transitions
     tensors = tuple(torch.from_numpy(x) for x in (state, action, next_state))
     scored = {}
-    for name, estimator in estimators(cfg.method).items():
+    for name, estimator in estimators(method).items():
         with torch.no_grad():
             scores = estimator.scores(model, *tensors)
         scored[name] = score_local_graphs(np.asarray(scores), truth, float(estimator.threshold(model)))
+        scored[name]["per_entry"] = score_local_graphs_per_entry(np.asarray(scores), truth)
+    return scored
+
+
+def evaluate(run_dir: Path, episodes: int) -> dict[str, Any]:
+    cfg = load_run_config(run_dir)
+    model = load_model(run_dir)
+    transitions = scripted_transitions(cfg.env, env_kwargs(cfg), episodes)
+    scored = score_estimators(cfg.method, model, transitions)
+    state = transitions[0]
     summary = json.loads((run_dir / "summary.json").read_text())
     return {"env": cfg.env, "seed": cfg.seed, "method": cfg.method, "transitions": int(len(state)),
             "updates": summary.get("updates"), "env_steps": summary.get("env_steps"),

@@ -120,6 +120,26 @@ def score_local_graphs(scores: np.ndarray, truth: np.ndarray, threshold: float) 
             "recall": at["recall"], "positive_rate": float(truth[mask].mean()) if mask.any() else 0.0}
 
 
+def score_local_graphs_per_entry(scores: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """The other variant of the chapter's evaluation code: ROC AUC, PR AUC and best F1 of each
+    off-diagonal entry ``(j, i)`` across the transitions, averaged over the entries whose true label
+    varies (``entries`` of them). Each entry has its own best threshold, so scores need not be
+    comparable between entries (as the pooled variant needs); ELDEN's partial derivatives are not
+    (their scale differs by output head), pCMI's nats are closer to it."""
+    per_entry = {"roc_auc": [], "pr_auc": [], "best_f1": []}
+    everywhere = np.ones(truth.shape[0], dtype=bool)
+    for j, i in zip(*np.nonzero(scored_entries(truth.shape[1:]))):
+        labels = truth[:, j, i]
+        if labels.min() == labels.max():
+            continue
+        column = scores[:, j, i]
+        per_entry["roc_auc"].append(roc_auc(column, labels, everywhere))
+        per_entry["pr_auc"].append(average_precision(column, labels, everywhere))
+        per_entry["best_f1"].append(best_threshold(column, labels, mask=everywhere)[1]["f1"])
+    means = {k: float(np.mean(v)) if v else float("nan") for k, v in per_entry.items()}
+    return {**means, "entries": len(per_entry["roc_auc"])}
+
+
 def _average_ranks(sorted_values: np.ndarray) -> np.ndarray:
     ranks = np.arange(1, len(sorted_values) + 1, dtype=np.float64)
     _, start, counts = np.unique(sorted_values, return_index=True, return_counts=True)

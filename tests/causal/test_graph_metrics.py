@@ -6,6 +6,7 @@ import numpy as np
 from causal.graph_metrics import (
     average_precision,
     score_local_graphs,
+    score_local_graphs_per_entry,
     best_threshold, binary_scores, confusion, identifiable_entries, roc_auc, score_graph, scored_entries,
 )
 
@@ -171,3 +172,22 @@ def test_local_graph_scores_pool_off_diagonal_entries_of_every_transition() -> N
     assert 0.35 < noise["roc_auc"] < 0.65 and noise["pr_auc"] < 0.4
     inverted = score_local_graphs(-(truth.astype(float)), truth, threshold=-0.5)
     assert inverted["roc_auc"] == 0.0 and inverted["f1"] == 0.0
+
+
+def test_per_entry_scores_average_the_entries_whose_labels_vary_by_hand() -> None:
+    truth = np.zeros((4, 2, 3), dtype=np.uint8)
+    truth[:, 0, 1] = [1, 1, 0, 0]      # varies: scored
+    truth[:, 1, 2] = [1, 0, 0, 0]      # varies: scored
+    truth[:, 0, 2] = 1                 # always an edge: left out; diagonal entries are never scored
+    scores = np.zeros(truth.shape)
+    scores[:, 0, 1] = [0.9, 0.8, 0.1, 0.2]      # separates: ROC 1, AP 1, F1 1
+    scores[:, 1, 2] = [1e-4, 2e-4, 3e-4, 0.0]   # the edge is 3rd of 4: ROC 1/3, AP 1/3, best F1 1/2
+    got = score_local_graphs_per_entry(scores, truth)
+    assert got["entries"] == 2
+    assert abs(got["roc_auc"] - (1 + 1 / 3) / 2) < 1e-12
+    assert abs(got["pr_auc"] - (1 + 1 / 3) / 2) < 1e-12
+    assert abs(got["best_f1"] - (1 + 0.5) / 2) < 1e-12
+    scaled = scores.copy()
+    scaled[:, 1, 2] *= 1e4                      # per entry, an entry's scale does not matter; pooled, it does
+    assert score_local_graphs_per_entry(scaled, truth) == got
+    assert score_local_graphs(scaled, truth, 0.5)["roc_auc"] != score_local_graphs(scores, truth, 0.5)["roc_auc"]

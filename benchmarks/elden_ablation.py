@@ -1,0 +1,174 @@
+"""Table 5.2 (chapter 5): ablations of ELDEN's local-graph detection (no Mixup & no regulariser,
+lambda = 0, a lambda sweep), each a switch of :class:`causal.elden.ELDENConfig`.
+
+As the chapter does for Tables 5.1-5.2 ("we train the dynamics model of each method ... on
+pre-collected transition data"), every variant trains an :class:`~causal.elden_trainer.ELDENTrainer`
+in this process on the same pre-collected random-primitive transitions (the stack's collection
+policy, :func:`services.env_worker.core.default_policy`), sampling ``members x member_batch`` rows
+uniformly per update as the dynamics-learner does, for the same number of updates; then its local
+graphs are scored on 50 scripted episodes of unseen seeds exactly as
+:mod:`benchmarks.local_graph_table` scores a run's final model (pooled off-diagonal entries, and
+per entry). The trained ensembles are kept in ``--out`` beside the results.
+
+    python -m benchmarks.elden_ablation [--envs thawing] [--seeds 0] [--variants no-mixup-no-reg lambda-0 ...]
+        [--updates 3000] [--transitions 200000] [--out runs/elden-ablation]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from benchmarks.local_graph_table import BUDGETS, _mean_sd, score_estimators, scripted_transitions
+from causal.elden import ELDENConfig
+from causal.elden_trainer import ELDENTrainer
+from causal.factored import FactorLayout
+from envs.registry import EnvOptions, env_entry
+from services.env_worker.core import default_policy
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "no-mixup-no-reg": {"mixup": False, "grad_reg": 0.0},
+    "no-mixup": {"mixup": False},
+    "lambda-0": {"grad_reg": 0.0},
+    "lambda-1e-1": {"grad_reg": 1e-1},
+    "lambda-1e-2": {"grad_reg": 1e-2},
+    "lambda-1e-3": {"grad_reg": 1e-3},
+    "lambda-1e-4": {"grad_reg": 1e-4},
+    "lambda-1e-5": {"grad_reg": 1e-5},
+}
+"""ELDENConfig overrides per variant (the rest: the defaults). ``no-mixup`` keeps the default lambda
+(not a row of the chapter's table)."""
+TABLE_ROWS = {"no-mixup-no-reg": "no Mixup & no Reg", "no-mixup": "no Mixup (lambda default)",
+              "lambda-0": "no Reg, i.e. lambda = 0", "lambda-1e-1": "lambda = 1e-1", "lambda-1e-2": "lambda = 1e-2",
+              "lambda-1e-3": "lambda = 1e-3", "lambda-1e-4": "lambda = 1e-4", "lambda-1e-5": "lambda = 1e-5"}
+CHAPTER = {"thawing": {"no-mixup-no-reg": (0.48, 0.42), "lambda-0": (0.57, 0.52), "lambda-1e-1": (0.68, 0.57),
+                       "lambda-1e-2": (0.71, 0.57), "lambda-1e-3": (0.64, 0.55), "lambda-1e-4": (0.65, 0.55),
+                       "lambda-1e-5": (0.63, 0.53)},
+           "cleaning-car": {"no-mixup-no-reg": (0.44, 0.27), "lambda-0": (0.54, 0.42), "lambda-1e-1": (0.73, 0.58),
+                            "lambda-1e-2": (0.76, 0.60), "lambda-1e-3": (0.78, 0.66), "lambda-1e-4": (0.75, 0.60),
+                            "lambda-1e-5": (0.72, 0.57)}}
+"""Table 5.2 (ROC AUC, F1): Thawing, CarWash."""
+DEFAULT_VARIANTS = ["no-mixup-no-reg", "lambda-0", "lambda-1e-1", "lambda-1e-2", "lambda-1e-3"]
+
+
+def task_kwargs(env: str) -> dict[str, Any]:
+    """The env's constructor arguments with the task :data:`BUDGETS` gives it (Table 5.1's task)."""
+    flags = BUDGETS[env]
+    task = flags[flags.index("--task") + 1] if "--task" in flags else ""
+    return env_entry(env).kwargs(EnvOptions(task=task))
+
+
+def collect(env: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, FactorLayout]:
+    """(state, action, next_state) of ``steps`` transitions of the stack's collection policy, and the
+    env's factor layout."""
+    entry = env_entry(env)
+    sim = entry.make(**task_kwargs(env))
+    policy = default_policy(entry, sim.action_space, seed)
+    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    obs, _ = sim.reset(seed=seed)
+    while len(rows) < steps:
+        act = policy.act(obs)
+        step_action = int(act[0]) if sim.unwrapped.env_spec().action_kind == "categorical" else act
+        nxt, _, terminated, truncated, _ = sim.step(step_action)
+        rows.append((obs, np.atleast_1d(act), nxt))
+        obs = nxt
+        if terminated or truncated:
+            obs, _ = sim.reset()
+            policy.reset()
+    layout = FactorLayout.from_spec(sim.unwrapped.env_spec())
+    sim.close()
+    state, action, next_state = (np.stack([r[i] for r in rows]).astype(np.float32) for i in range(3))
+    return state, action, next_state, layout
+
+
+def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], updates: int,
+          seed: int) -> tuple[ELDENTrainer, dict[str, float]]:
+    """``updates`` steps of an ELDENTrainer, each on ``members x member_batch`` rows drawn uniformly."""
+    trainer = ELDENTrainer(layout, cfg, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    tensors = tuple(torch.from_numpy(x) for x in data)
+    stats: dict[str, float] = {}
+    for _ in range(updates):
+        rows = torch.from_numpy(rng.integers(0, len(data[0]), trainer.batch_size))
+        stats = trainer.update(*(t[rows] for t in tensors))
+    return trainer, stats
+
+
+def run_variant(env: str, seed: int, variant: str, data: tuple, layout: FactorLayout, scripted: tuple,
+                updates: int) -> tuple[dict[str, Any], ELDENTrainer]:
+    cfg = dataclasses.replace(ELDENConfig(), **VARIANTS[variant])
+    started = time.process_time()
+    trainer, stats = train(layout, cfg, data, updates, seed)
+    trained = time.process_time() - started
+    scored = score_estimators("elden", trainer.model, scripted)
+    return {"env": env, "seed": seed, "variant": variant, "config": VARIANTS[variant], "updates": updates,
+            "transitions": int(len(data[0])), "final_stats": stats, "train_cpu_s": trained,
+            "estimators": scored}, trainer
+
+
+def table(results: list[dict[str, Any]]) -> str:
+    """Table 5.2's layout: one row per variant, ROC AUC / PR AUC / best F1 per env beside the chapter's."""
+    lines = ["| variant | env | seeds | ROC AUC | PR AUC | best F1 | per entry: ROC AUC / PR AUC / best F1 | "
+             "Attn ROC AUC / best F1 | chapter ROC AUC / F1 |", "|---|---|---|---|---|---|---|---|---|"]
+    for variant in dict.fromkeys(r["variant"] for r in results):
+        for env in dict.fromkeys(r["env"] for r in results if r["variant"] == variant):
+            got = [r["estimators"] for r in results if r["variant"] == variant and r["env"] == env]
+            stat = lambda name, key: _mean_sd([g[name][key] for g in got])  # noqa: E731
+            entry = lambda key: _mean_sd([g["jacobian"]["per_entry"][key] for g in got])  # noqa: E731
+            chapter = CHAPTER.get(env, {}).get(variant)
+            cell = "{:.2f} / {:.2f}".format(*chapter) if chapter else "-"
+            lines.append(f"| {TABLE_ROWS[variant]} | {env} | {len(got)} | {stat('jacobian', 'roc_auc')} | "
+                         f"{stat('jacobian', 'pr_auc')} | {stat('jacobian', 'best_f1')} | "
+                         f"{entry('roc_auc')} / {entry('pr_auc')} / {entry('best_f1')} | "
+                         f"{stat('attention', 'roc_auc')} / {stat('attention', 'best_f1')} | {cell} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--envs", nargs="+", default=["thawing"], choices=sorted(CHAPTER))
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, choices=sorted(VARIANTS))
+    p.add_argument("--updates", type=int, default=3000, help="ELDEN updates per variant (Table 5.1's runs: 3,000)")
+    p.add_argument("--transitions", type=int, default=200_000,
+                   help="pre-collected transitions (the dynamics-learner's replay capacity: 200,000)")
+    p.add_argument("--episodes", type=int, default=50, help="scripted evaluation episodes (the chapter: 50)")
+    p.add_argument("--out", type=Path, default=Path("runs/elden-ablation"),
+                   help="folder of elden-ablation.json (results accumulate there across invocations)")
+    args = p.parse_args(argv)
+    if args.updates < 1 or args.transitions < 1 or args.episodes < 1:
+        p.error("--updates, --transitions and --episodes must be >= 1")
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "elden-ablation.json"
+    results = json.loads(path.read_text()) if path.exists() else []
+    for env in args.envs:
+        scripted = scripted_transitions(env, task_kwargs(env), args.episodes)
+        for seed in args.seeds:
+            *data, layout = collect(env, args.transitions, seed)
+            for variant in args.variants:
+                result, trainer = run_variant(env, seed, variant, tuple(data), layout, scripted, args.updates)
+                torch.save(trainer.model.state_dict(), args.out / f"{_name(result)}.pt")
+                print(json.dumps(result), flush=True)
+                results = [r for r in results if _key(r) != _key(result)] + [result]
+                path.write_text(json.dumps(results, indent=1))
+    print(table([r for r in results if r["updates"] == args.updates]))
+
+
+def _name(result: dict[str, Any]) -> str:
+    return "{}-s{}-{}-u{}-t{}".format(*_key(result))
+
+
+def _key(result: dict[str, Any]) -> tuple:
+    """Results accumulate in ``--out`` across invocations; a rerun replaces its own entry."""
+    return result["env"], result["seed"], result["variant"], result["updates"], result["transitions"]
+
+
+if __name__ == "__main__":
+    main()
