@@ -1,6 +1,7 @@
 """FLAM's Tables 8.1 and 8.2 analogues on MultiGrid agents (chapter 8): 10-step prediction PSNR of
-FLAM, the monolithic latent action model of equal latent capacity and the FSQ autoencoder's
-reconstruction ceiling, on unseen seeds; DCI of the latent actions against the agents' true actions.
+FLAM, the monolithic latent action model of equal latent capacity, the two-stage slot baseline
+(``--models two-stage``) and the FSQ autoencoder's reconstruction ceiling, on unseen seeds; DCI of
+the latent actions against the agents' true actions.
 
     python -m benchmarks.flam_table --seed 0
 
@@ -52,6 +53,7 @@ class Args:
     mask_prior: str
     aggregator: str
     slot_reconstruction: float
+    slot_stage_updates: int
     out: str
 
 
@@ -70,7 +72,8 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--beta-kl", type=float, default=1e-3)
     p.add_argument("--variant", choices=("independent", "correlated"), default="independent",
                    help="correlated: agent 1 repeats agent 0 (section 8.3), FLAM alone with K = 3")
-    p.add_argument("--models", nargs="+", choices=("flam", "monolithic"), default=["flam", "monolithic"])
+    p.add_argument("--models", nargs="+", choices=("flam", "monolithic", "two-stage"), default=["flam", "monolithic"],
+                   help="two-stage: the slot baseline of Table 8.1 (slots learned first, frozen, then per-slot latent actions)")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--num-slots", type=int, default=0,
                    help="K (0: one per independently acting agent plus one for the background)")
@@ -79,26 +82,60 @@ def parse_args(argv: list[str] | None = None) -> Args:
                    help="FLAM: Dyn-O's annealed mask prior from the renderer's masks in training (never at evaluation)")
     p.add_argument("--slot-reconstruction", type=float, default=0.0,
                    help="FLAM: weight of an added reconstruction of e_t from its slots (0: eq. 8.6 alone)")
+    p.add_argument("--slot-stage-updates", type=int, default=600,
+                   help="two-stage: updates of its first stage (slots by reconstruction, with --mask-prior)")
     p.add_argument("--out", default="", help="write the results as JSON here")
     args = vars(p.parse_args(argv))
     return Args(**{**args, "models": tuple(args["models"])})
 
 
-def train_lam(model: nn.Module, features: torch.Tensor, labels: torch.Tensor, args: Args, log: str) -> float:
+def sample_clips(features: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, batch: int,
+                 clip: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``batch`` random clips of ``clip`` frames of the features ``[E, T, n, d_e]`` and their token labels."""
+    episodes, steps = features.shape[:2]
+    e = torch.randint(episodes, (batch,), generator=generator)
+    t = torch.randint(steps - clip + 1, (batch,), generator=generator)
+    frames = t[:, None] + torch.arange(clip)
+    return features[e[:, None], frames], labels[e[:, None], frames]
+
+
+def train_lam(model: nn.Module, features: torch.Tensor, labels: torch.Tensor, args: Args, log: str,
+              prior: str | None = None) -> float:
     """Train on random clips of ``args.clip`` frames of the training features (token labels
-    ``[E, T, n]`` for the mask prior); seconds taken."""
-    prior = args.mask_prior if isinstance(model, FLAM) else "none"
+    ``[E, T, n]`` for the mask prior: FLAM's ``args.mask_prior`` unless ``prior`` says); seconds taken."""
+    prior = prior or (args.mask_prior if isinstance(model, FLAM) else "none")
     trainer, start = LAMTrainer(model, seed=args.seed, mask_prior=prior, total_updates=args.updates), time.time()
     generator = torch.Generator().manual_seed(args.seed)
-    episodes, steps = features.shape[:2]
     for update in range(args.updates):
-        e = torch.randint(episodes, (model.config.batch_size,), generator=generator)
-        t = torch.randint(steps - args.clip + 1, (model.config.batch_size,), generator=generator)
-        frames = t[:, None] + torch.arange(args.clip)
-        terms = trainer.update(features[e[:, None], frames], labels[e[:, None], frames])
+        terms = trainer.update(*sample_clips(features, labels, generator, model.config.batch_size, args.clip))
         if update % 200 == 0 or update == args.updates - 1:
             print(f"  {log} update {update}: {json.dumps({k: round(v, 5) for k, v in terms.items()})}", flush=True)
     return time.time() - start
+
+
+def train_two_stage(model: FLAM, features: torch.Tensor, labels: torch.Tensor, args: Args) -> float:
+    """Table 8.1's two-stage slot baseline (PlaySlot-like): first the factorizer and a slot decoder learn
+    slots by reconstructing each frame's features from them (Dyn-O's feature term, the same mask prior
+    as FLAM's over ``args.slot_stage_updates``), then both are frozen and the per-slot IDM, FDM and
+    aggregator learn eq. 8.6 on the frozen slots for ``args.updates``; seconds taken."""
+    masks, start = LAMTrainer(model, seed=args.seed, mask_prior=args.mask_prior,
+                              total_updates=args.slot_stage_updates), time.time()
+    optimizer = torch.optim.Adam([*model.factorizer.parameters(), *model.slot_decoder.parameters()], lr=args.lr)
+    generator = torch.Generator().manual_seed(args.seed + 1)
+    for update in range(args.slot_stage_updates):
+        clips, clip_labels = sample_clips(features, labels, generator, model.config.batch_size, args.clip)
+        slots, _ = model.factorizer(clips, masks.masks_for(clip_labels))
+        loss = (model.slot_decoder(slots.flatten(0, 1))[0].view_as(clips) - clips).pow(2).flatten(2).sum(-1).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        masks.updates += 1
+        if update % 200 == 0 or update == args.slot_stage_updates - 1:
+            print(f"  two-stage slots update {update}: slot_reconstruction_sse {float(loss.detach()):.5f}", flush=True)
+    model.factorizer.requires_grad_(False)
+    model.slot_decoder.requires_grad_(False)
+    return time.time() - start + train_lam(model, features, labels, args, "two-stage", prior="none")
 
 
 def evaluate(model: nn.Module, autoencoder: FSQAutoencoder, features: torch.Tensor, frames: torch.Tensor,
@@ -167,12 +204,16 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     copy = (train_features[:, 1:] - train_features[:, :-1]).pow(2).flatten(2).sum(-1).mean()
     print(f"copy-last-frame prediction_sse on the training videos: {float(copy):.4f}", flush=True)
     actions = torch.from_numpy(test["actions"])
-    models = {"flam": FLAM, "monolithic": MonolithicLAM}
+    models = {"flam": FLAM, "monolithic": MonolithicLAM, "two-stage": FLAM}
+    labels = token_labels(train["labels"])
     for name in ("flam",) if env.correlated else args.models:
-        cls = models[name]
         torch.manual_seed(args.seed)
-        model = cls(replace(config), grid * grid)
-        seconds = train_lam(model, train_features, token_labels(train["labels"]), args, name)
+        if name == "two-stage":  # the slot decoder of its first stage; eq. 8.6 alone in its second
+            model = FLAM(replace(config, slot_reconstruction=1.0), grid * grid)
+            seconds = train_two_stage(model, train_features, labels, args)
+        else:
+            model = models[name](replace(config), grid * grid)
+            seconds = train_lam(model, train_features, labels, args, name)
         results[name] = {**evaluate(model, autoencoder, test_features, test_frames, actions, config.num_slots),
                          "train_seconds": round(seconds, 1)}
         if isinstance(model, FLAM):

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
-from benchmarks.flam_table import agent_slots, main, parse_args, slot_sharing
+from benchmarks.flam_table import agent_slots, main, parse_args, slot_sharing, train_lam, train_two_stage
+from causal.flam import FLAM, FLAMConfig
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -38,3 +40,24 @@ def test_agent_slots_and_sharing_on_a_hand_built_attention() -> None:
     assert slots.tolist() == [[[1, 1, 2]]]
     sharing = slot_sharing(slots)
     assert sharing == {"agents_0_1_share_slot": 1.0, "grouped_as_actions": 1.0, "every_agent_own_slot": 0.0}
+
+
+def test_the_two_stage_baseline_trains_slots_first_then_latent_actions_on_them_frozen(tmp_path: Path) -> None:
+    args = parse_args(["--episodes", "3", "--episode-steps", "5", "--eval-episodes", "4", "--horizon", "3",
+                       "--ae-updates", "1", "--slot-stage-updates", "2", "--updates", "2", "--slot-dim", "16",
+                       "--aggregator", "broadcast", "--mask-prior", "annealed", "--models", "two-stage"])
+    features = torch.randn(3, 6, 64, 4)
+    labels = torch.randint(5, (3, 6, 64))
+    model = FLAM(FLAMConfig(num_slots=5, slot_dim=16, aggregator="broadcast", slot_reconstruction=1.0), 64)
+    factorizer = [p.detach().clone() for p in model.factorizer.parameters()]
+    idm = [p.detach().clone() for p in model.idm.parameters()]
+    train_two_stage(model, features, labels, args)
+    assert not any(p.requires_grad for p in [*model.factorizer.parameters(), *model.slot_decoder.parameters()])
+    assert any(not torch.equal(a, b) for a, b in zip(factorizer, model.factorizer.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(idm, model.idm.parameters()))
+    frozen = [p.detach().clone() for p in model.factorizer.parameters()]
+    train_lam(model, features, labels, args, "two-stage", prior="none")
+    assert all(torch.equal(a, b) for a, b in zip(frozen, model.factorizer.parameters()))
+    results = main(replace(args, out=str(tmp_path / "table.json")))
+    assert set(results) == {"recon", "two-stage"} and results["two-stage"]["psnr"] > 0
+    assert 0.0 <= results["two-stage"]["every_agent_own_slot"] <= 1.0
