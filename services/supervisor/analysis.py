@@ -51,7 +51,8 @@ def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) ->
     report = record.report
     content = reporting.summary(report, record.facts, record.history)
     ok = cfg.evaluate and not record.failure and (report is not None or record.local_report is not None)
-    final, final_local = _final_reports(cfg, run_dir, stream) if ok else (None, None)
+    # Over slots (--worker-publish-frames) the final model's factors are the extractor's: not rebuilt here.
+    final, final_local = _final_reports(cfg, run_dir, stream) if ok and not cfg.worker.publish_frames else (None, None)
     if record.policy_stats is not None:
         content["policy"] = reporting.policy_summary(record.policy_stats, record.policy_timeline)
         reporting.plot_policy(content["policy"], run_dir / "policy.png")

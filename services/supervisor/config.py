@@ -26,6 +26,7 @@ from envs.registry import EnvOptions, env_names
 from proto.settings import section
 from services.dynamics_learner.config import DynamicsLearnerConfig, MethodConfigs
 from services.env_worker.config import EnvWorkerConfig
+from services.factor_extractor.config import FactorExtractorConfig
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.intrinsic_reward.config import IntrinsicRewardConfig
 from services.policy_learner.config import ALGOS, PolicyLearnerConfig
@@ -86,6 +87,8 @@ class RunConfig(RunSettings):
                                           exclude=SERVICE_FIELDS + ("algo", "skills", "scored"))
     intrinsic_reward: IntrinsicRewardConfig = section(IntrinsicRewardConfig, prefix="intrinsic",
                                                       exclude=SERVICE_FIELDS + ("reward",))
+    extractor: FactorExtractorConfig = section(FactorExtractorConfig, prefix="extractor", exclude=SERVICE_FIELDS,
+                                               help="the factor-extractor of a run with --worker-publish-frames true")
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -18,6 +18,7 @@ from services.bus.memory import InMemoryBus, InMemoryTransport
 from services.dashboard import service as dashboard_service
 from services.dynamics_learner import service as learner_service
 from services.env_worker import service as worker_service
+from services.factor_extractor import service as extractor_service
 from services.graph_evaluator import service as evaluator_service
 from services.intrinsic_reward import service as intrinsic_service
 from services.policy_learner import service as policy_service
@@ -41,7 +42,7 @@ class InProcessStack:
         overrides = config_overrides or {}
         runners: dict[str, Callable] = {"dynamics-learner": learner_service.run, "graph-evaluator": evaluator_service.run,
                                         "dashboard": dashboard_service.run, "policy-learner": policy_service.run,
-                                        "intrinsic-reward": intrinsic_service.run}
+                                        "intrinsic-reward": intrinsic_service.run, "factor-extractor": extractor_service.run}
         self.threads: list[threading.Thread] = []
         self.errors: list[BaseException] = []
         for name in services:

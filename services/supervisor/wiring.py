@@ -24,6 +24,7 @@ from services.bus.roles import access_control, new_passwords, run_roles
 from services.bus.router import free_tcp_port
 from services.dashboard.config import DashboardConfig
 from services.env_worker.config import EnvWorkerConfig
+from services.env_worker.frames import has_frames
 from services.runtime.config import RunSettings
 from services.supervisor.config import RunConfig
 
@@ -33,7 +34,8 @@ from another machine."""
 
 MODULES = {"env-worker": "services.env_worker", "dynamics-learner": "services.dynamics_learner",
            "graph-evaluator": "services.graph_evaluator", "dashboard": "services.dashboard",
-           "policy-learner": "services.policy_learner", "intrinsic-reward": "services.intrinsic_reward"}
+           "policy-learner": "services.policy_learner", "intrinsic-reward": "services.intrinsic_reward",
+           "factor-extractor": "services.factor_extractor"}
 """Service name -> the module its process runs (``python -m <module>``)."""
 
 
@@ -59,6 +61,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
     if cfg.target_f1 and method.global_graph is None:
         raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
     _check_edge_tests(cfg, method)
+    _check_frames(cfg)
     if cfg.target_f1 and not entry.has_global_truth:
         raise ValueError(f"environment {cfg.env!r} has no true global graph to score --target-metric against")
     run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
@@ -74,6 +77,19 @@ def _entry(name: str) -> EnvEntry:
         return env_entry(name)
     except KeyError as exc:
         raise ValueError(exc.args[0]) from None
+
+
+def _check_frames(cfg: RunConfig) -> None:
+    """``--worker-publish-frames`` needs an env that renders frames (``info["frame"]``) with its masks when
+    the extractor's mask prior uses them."""
+    if not cfg.worker.publish_frames:
+        return
+    info = make_env(cfg.env, **env_kwargs(cfg)).reset(seed=cfg.seed)[1]
+    if not has_frames(info):
+        raise ValueError(f"--worker-publish-frames: {cfg.env} renders no frames (chemical-pixels does)")
+    if cfg.extractor.slot.mask_prior != "none" and "masks" not in info:
+        raise ValueError(f"--extractor-slot-mask-prior {cfg.extractor.slot.mask_prior} needs the frames' masks; "
+                         f"{cfg.env} gives none (use none)")
 
 
 def _check_edge_tests(cfg: RunConfig, method: Method) -> None:
@@ -122,6 +138,7 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
                                                 reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff"),
         "env-worker": worker_config(cfg, connect, worker_index),
     }
+    configs["factor-extractor"] = dataclasses.replace(cfg.extractor, **common, metrics_port=port(6))
     return {name: dataclasses.replace(c, bus_credentials=credentials_path(cfg, name)) for name, c in configs.items()}
 
 
@@ -136,7 +153,7 @@ def prepare_bus_auth(cfg: RunConfig) -> RouterAuth | None:
     the router's access control (:mod:`services.bus.roles`); None without."""
     if not cfg.bus_auth:
         return None
-    roles = run_roles(cfg.run_id, cfg.method)
+    roles = run_roles(cfg.run_id, cfg.method, frames=cfg.worker.publish_frames)
     return write_run_secrets(cfg.run_dir, new_passwords(tuple(roles)), access_control(roles))
 
 
@@ -145,7 +162,7 @@ def learning_services(cfg: RunConfig) -> tuple[str, ...]:
     a method that estimates no graph)."""
     method = get_method(cfg.method)
     graphs = method.global_graph is not None or method.local_graph is not None
-    return (("dynamics-learner",) + (("graph-evaluator",) if graphs else ())
+    return (("factor-extractor",) if cfg.worker.publish_frames else ()) + (("dynamics-learner",) + (("graph-evaluator",) if graphs else ())
             + (("policy-learner",) if cfg.collector != "random" else ())
             + (("intrinsic-reward",) if cfg.intrinsic != "none" else ()))
 
@@ -161,7 +178,10 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
 
 def scores_local_graphs(cfg: RunConfig) -> bool:
     """Whether the run scores local graphs: the method estimates them, the env knows them, and the
-    env scores them by default or ``--worker-local-graphs true`` asks (the workers then send them)."""
+    env scores them by default or ``--worker-local-graphs true`` asks (the workers then send them).
+    Not over slots (``--worker-publish-frames``): the true local graphs are the objects'."""
+    if cfg.worker.publish_frames:
+        return False
     entry = env_entry(cfg.env)
     wanted = cfg.worker.local_graphs or entry.local_scoring
     return wanted and entry.has_local_truth and get_method(cfg.method).local_graph is not None
