@@ -136,10 +136,12 @@ def test_edge_rule_flags_are_declared_once_in_the_evaluator_section() -> None:
 
 
 def test_a_method_without_standard_errors_refuses_the_fdr_rule_and_the_stable_stop() -> None:
+    # CBM's graphs have standard errors too since issue 22 item 4 (tests/services/test_edge_bias.py);
+    # the modular model has no global graph at all
     with pytest.raises(ValueError, match="standard errors"):
-        resolve(build_config(RunConfig, method="cbm", evaluator_edge_rule="fdr"))
+        resolve(build_config(RunConfig, method="modular", evaluator_edge_rule="fdr"))
     with pytest.raises(ValueError, match="standard errors"):
-        resolve(build_config(RunConfig, method="cbm", stable_reports=3))
+        resolve(build_config(RunConfig, method="modular", stable_reports=3))
     with pytest.raises(ValueError, match="standard errors"):
-        GraphEvaluatorCore(GraphEvaluatorConfig(method="cbm", edge_rule="fdr"), chain_spec())
+        GraphEvaluatorCore(GraphEvaluatorConfig(method="modular", edge_rule="fdr"), chain_spec())
     assert resolve(build_config(RunConfig, evaluator_edge_rule="fdr", stable_reports=3, router_port=1)).stable_reports == 3
