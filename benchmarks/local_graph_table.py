@@ -207,17 +207,20 @@ def rows(results: list[dict[str, Any]]) -> list[tuple[str, str, list[dict[str, f
 def table(results: list[dict[str, Any]], method: str) -> str:
     """Each estimator's scores on the scripted episodes beside the chapter's row of the same name
     (results of several methods may be mixed: ``--compare``)."""
-    lines = ["| env | estimator | seeds | ROC AUC | PR AUC | best F1 | chapter ROC AUC / F1 |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| env | estimator | seeds | ROC AUC | PR AUC | best F1 | per entry: ROC AUC / PR AUC / best F1 | "
+             "chapter ROC AUC / F1 |", "|---|---|---|---|---|---|---|---|"]
     for env, row, metrics in rows(results):
         stat: Callable[[str], str] = lambda key: _mean_sd([m[key] for m in metrics])  # noqa: E731
+        entry: Callable[[str], str] = lambda key: _mean_sd([m["per_entry"][key] for m in metrics  # noqa: E731
+                                                            if "per_entry" in m])
         chapter = CHAPTER.get(env, {}).get(row)
         cell = "{:.2f} / {:.2f}".format(*chapter) if chapter else "-"
         lines.append(f"| {env} | {row} | {len(metrics)} | {stat('roc_auc')} | {stat('pr_auc')} | "
-                     f"{stat('best_f1')} | {cell} |")
+                     f"{stat('best_f1')} | {entry('roc_auc')} / {entry('pr_auc')} / {entry('best_f1')} | {cell} |")
     held = [f"{r['env']} s{r['seed']} {r.get('method', 'cdl')}: {_mean_sd([r['heldout']['roc_auc']])} / "
             f"{_mean_sd([r['heldout']['best_f1']])}" for r in results]
-    return (f"method {method}; scripted-policy episodes, pooled off-diagonal entries, mean ± sd over seeds\n\n"
+    return (f"method {method}; scripted-policy episodes, pooled off-diagonal entries (per entry: the mean over "
+            "entries whose labels vary), mean ± sd over seeds\n\n"
             + "\n".join(lines) + "\n\nheld-out (random policy, run's final model) ROC AUC / best F1: "
             + "; ".join(held))
 
