@@ -97,23 +97,28 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
     tested = fdr_graph(estimate, args.fdr, args.min_cmi)
     nulled = fdr_graph(estimate, args.fdr, 0.0, "permuted")
     pooled = fdr_graph(estimate, args.fdr, 0.0, "pooled")
+    overall = fdr_graph(estimate, args.fdr, 0.0, "global")
     non_edges = ~truth & scored_entries(truth.shape)
     return {"graph": graph, "seed": seed, "updates": args.updates,
             "true_edges": int((truth & scored_entries(truth.shape)).sum()),
             "false_discoveries": false(tested), "false_discoveries_permuted": false(nulled),
             "false_discoveries_pooled": false(pooled), "fdr_pooled": scores(pooled, truth),
+            "false_discoveries_global": false(overall), "fdr_global": scores(overall, truth),
+            "estimate": {k: np.round(getattr(estimate, k), 7).tolist() for k in ("cmi", "stderr", "null", "excess_stderr")},
+            "truth": truth.astype(int).tolist(),
             "weak_true_edges": int(weak.sum()), "fixed": scores(estimate.cmi >= 0.02, truth),
             "fdr_graph": scores(tested, truth), "fdr_permuted": scores(nulled, truth),
             "oracle_f1": oracle["best_threshold_f1"], "weak_recall_by_heldout": recall_weak("fixed"),
             "weak_recall_by_heldout_permuted": recall_weak("permuted"),
             "weak_recall_by_heldout_pooled": recall_weak("pooled"),
+            "weak_recall_by_heldout_global": recall_weak("global"),
             "non_edge_cmi_mean": float(estimate.cmi[non_edges].mean()),
             "non_edge_null_mean": float(estimate.null[non_edges].mean()),
             "by_min_cmi": {str(m): scores(fdr_graph(estimate, args.fdr, m), truth) for m in MIN_CMI_SWEEP}}
 
 
 RULES = (("fixed", "fixed 0.02"), ("fdr_graph", "FDR, min_cmi"), ("fdr_permuted", "FDR, permuted null"),
-         ("fdr_pooled", "FDR, pooled null"))
+         ("fdr_pooled", "FDR, pooled null"), ("fdr_global", "FDR, global null"))
 
 
 def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
@@ -136,7 +141,7 @@ def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
                      + " | ".join(ms([r[key]["f1"] for r in mine]) for key, _ in RULES)
                      + f" | {ms([r['oracle_f1'] for r in mine])} | "
                      + " / ".join(ms([r[key]["fdr"] for r in mine]) for key, _ in RULES[1:]) + " | "
-                     + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in ("", "_permuted", "_pooled")) + " |")
+                     + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in ("", "_permuted", "_pooled", "_global")) + " |")
     return "\n".join(lines)
 
 

@@ -58,6 +58,11 @@ output uses least. It assumes the bias is mostly the output's (the drop-one mode
 trained less, whichever input is dropped) and that output ``j`` has at least one input it does not
 use; a true edge's null is far below 0 (the full model leans on it), so edges do not set the level.
 It gives up some power (the largest of several noisy nulls sits above the bias).
+
+``bias="global"`` tests every entry against the largest null of the whole graph: a minimum effect
+size estimated from the data, the largest CMI an input whose dependence was broken reaches in this
+model. It sits where ``min_cmi`` sat and adapts to how well the model is trained (a less-trained
+model's bias is larger, and so is its level), at the cost of the weak edges below it.
 """
 from __future__ import annotations
 
@@ -68,10 +73,10 @@ import numpy as np
 
 from proto.messages import EDGE_RULES
 
-BIASES = ("fixed", "permuted", "pooled")
+BIASES = ("fixed", "permuted", "pooled", "global")
 """How the fdr rule allows for the learned model's bias: ``fixed`` tests ``CMI > min_cmi``;
 ``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input; ``pooled``
-tests ``CMI > `` the largest null of the entry's output (see the module's docstring)."""
+tests ``CMI >`` the largest null of the entry's output, ``global`` the largest of the whole graph."""
 
 __all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "tested_entries", "undecided"]
 
@@ -126,18 +131,23 @@ class EdgeEstimate:
         """``cmi`` above the estimated bias and its standard error (ValueError without the null).
 
         ``permuted``: ``cmi - null`` per entry, from the paired per-sample differences. ``pooled``:
-        ``cmi - max_i null[j, i]`` (over the inputs of output ``j`` but itself), with the standard
-        errors of the two added in quadrature, the null's taken as ``stderr + excess_stderr`` at
+        ``cmi - max_i null[j, i]`` (over the inputs of output ``j`` but itself); ``global``: ``cmi -``
+        the largest null of the whole graph (self-edges left out); with the standard errors of the
+        two added in quadrature, the null's taken as ``stderr + excess_stderr`` at
         its arg-max (an upper bound on the standard error of ``cmi - (cmi - null)``, whatever
         the correlation of the two terms)."""
         if self.null is None or self.excess_stderr is None:
             raise ValueError("this estimate has no permuted-input null (estimate it with a generator)")
         if bias == "permuted":
             return self.cmi - self.null, self.excess_stderr
-        others = np.where(np.eye(*self.null.shape, dtype=bool), -np.inf, self.null)
-        top = others.argmax(axis=1)[:, None]
-        level = np.take_along_axis(self.null, top, axis=1)
-        level_se = np.take_along_axis(self.stderr + self.excess_stderr, top, axis=1)
+        others = np.where(tested_entries(self.null.shape), self.null, -np.inf)
+        if bias == "global":
+            top = np.unravel_index(others.argmax(), others.shape)
+            level, level_se = self.null[top], (self.stderr + self.excess_stderr)[top]
+        else:
+            index = others.argmax(axis=1)[:, None]
+            level = np.take_along_axis(self.null, index, axis=1)
+            level_se = np.take_along_axis(self.stderr + self.excess_stderr, index, axis=1)
         return self.cmi - level, np.sqrt(self.stderr**2 + level_se**2)
 
 

@@ -96,7 +96,7 @@ def test_the_estimated_bias_keeps_the_false_discovery_rate_where_min_cmi_0_does_
     edges), the pooled null's below it (0; 74%), while testing ``CMI > 0`` on the same draws is far
     above it (0.85: every non-edge is biased up)."""
     rng = np.random.default_rng(7)
-    reached = {"permuted": [], "fixed": [], "pooled": []}
+    reached = {"permuted": [], "fixed": [], "pooled": [], "global": []}
     power = {bias: [] for bias in reached}
     for _ in range(200):
         gains, permuted, truth = biased_model_terms(rng)
@@ -110,6 +110,7 @@ def test_the_estimated_bias_keeps_the_false_discovery_rate_where_min_cmi_0_does_
     assert np.mean(reached["fixed"]) > 0.5 and np.mean(power["permuted"]) > 0.6
     # pooled: every output's largest null is above each entry's own bias here, so it is conservative
     assert np.mean(reached["pooled"]) <= 0.1 and np.mean(power["pooled"]) > 0.5
+    assert np.mean(reached["global"]) <= 0.1 and np.mean(power["global"]) > 0.4
 
 
 def test_the_permuted_null_is_the_mean_of_cmi_minus_the_permuted_terms() -> None:
@@ -133,6 +134,12 @@ def test_the_permuted_null_is_the_mean_of_cmi_minus_the_permuted_terms() -> None
         i = max((i for i in range(est.cmi.shape[1]) if i != j), key=lambda i: est.null[j, i])
         np.testing.assert_allclose(excess[j], est.cmi[j] - est.null[j, i])
         np.testing.assert_allclose(se[j], np.hypot(est.stderr[j], est.stderr[j, i] + est.excess_stderr[j, i]))
+    # global: the largest null of the whole graph, self-edges left out
+    excess, se = est.excess("global")
+    off = ~np.eye(*est.null.shape, dtype=bool)
+    j, i = np.argwhere(off & (est.null == est.null[off].max()))[0]
+    np.testing.assert_allclose(excess, est.cmi - est.null[j, i])
+    np.testing.assert_allclose(se, np.hypot(est.stderr, est.stderr[j, i] + est.excess_stderr[j, i]))
 
 
 def test_decide_with_the_permuted_null_marks_undecided_by_the_excess() -> None:
