@@ -85,6 +85,19 @@ def object_graphs(local_graphs: np.ndarray, factor_objects: Sequence[str]) -> np
     return pooled > 0
 
 
+def induced_local_graphs(scores: np.ndarray, threshold: float, states: np.ndarray,
+                         next_states: np.ndarray) -> np.ndarray:
+    """The local graphs a step induced, from an estimator's edge scores ``[B, d_S, d_S + 1]`` (pCMI):
+    an edge where the score reaches ``threshold``, self-edges always, and an attribute that did not
+    change given only its self-edge (the authors' rule). Bool ``[B, d_S, d_S + 1]``."""
+    d = scores.shape[1]
+    eye = np.eye(d, d + 1, dtype=bool)
+    graphs = (np.asarray(scores) >= threshold) | eye
+    unchanged = np.asarray(states) == np.asarray(next_states)
+    graphs[unchanged] = eye[np.nonzero(unchanged)[1]]
+    return graphs
+
+
 def row_keys(rows: np.ndarray) -> np.ndarray:
     """Bool rows ``[..., N + 1]`` -> int64 keys (bit ``i`` = parent ``i``); at most 62 parents."""
     width = rows.shape[-1]

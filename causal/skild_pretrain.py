@@ -23,7 +23,8 @@ import torch
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
-from causal.skild import SkiLDConfig, graph_matches, key_rows, novelty_reward, object_graphs, object_names, row_keys
+from causal.skild import (SkiLDConfig, graph_matches, induced_local_graphs, key_rows, novelty_reward, object_graphs,
+                          object_names, row_keys)
 from causal.skild_agent import SkillLearnerConfig, SkiLDAgent
 from envs.registry import make_env
 from proto.settings import doc
@@ -132,8 +133,6 @@ class LearnedGraphs:
         spec = envs.envs[0].env_spec()
         self.trainer = CDLTrainer(FactorLayout.from_spec(spec), CDLConfig(), seed=seed)
         self.run = run
-        d = len(envs.sizes)
-        self.eye = np.eye(d, d + 1, dtype=bool)
 
     def step(self, agent: SkiLDAgent, states: np.ndarray, actions: np.ndarray, nxt: np.ndarray) -> np.ndarray:
         """Train the model on replayed transitions, then the local graphs ``[B, d, d + 1]`` of this step."""
@@ -145,10 +144,7 @@ class LearnedGraphs:
                                               replay.fields["next_state"][index]))
         with torch.no_grad():
             scores = self.trainer.model.pointwise_cmi(*_tensors(states, actions, nxt)).numpy()
-        graphs = (scores >= self.trainer.cfg.cmi_threshold) | self.eye
-        unchanged = states == nxt
-        graphs[unchanged] = self.eye[np.nonzero(unchanged)[1]]
-        return graphs
+        return induced_local_graphs(scores, self.trainer.cfg.cmi_threshold, states, nxt)
 
 
 def _tensors(states: np.ndarray, actions: np.ndarray, nxt: np.ndarray) -> tuple[torch.Tensor, ...]:

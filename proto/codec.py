@@ -28,6 +28,7 @@ from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE
 from proto.messages import EDGE_RULES, SCHEMA_VERSION, Control, EnvSpec, FrameBatch, GraphReport, LocalGraphReport
 from proto.messages import ScoredBatch
 from proto.messages import ServiceStats, TransitionBatch, Weights
+from proto.messages import SKILL_PHASES, InducedGraphs, SkillBatch
 
 Message = EnvSpec | TransitionBatch | FrameBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport | Control | ServiceStats
 M = TypeVar("M")
@@ -346,6 +347,13 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "truth": _array("uint8", ndim=3), "metrics": _str_map(_float), "num_transitions": _int,
         "timestamp": _float,
     },
+    SkillBatch: {
+        "transitions": _nested(TransitionBatch), "phase": _str, "slot": _array("int32", ndim=1),
+        "b": _array("int32", ndim=1), "started": _array("bool", ndim=1),
+    },
+    InducedGraphs: {
+        "kind": _str, "worker_id": _str, "seq": _int, "weights_version": _int, "graphs": _array("uint8", ndim=3),
+    },
     Control: {"command": _str, "argument": _str, "issued_at": _float},
     ServiceStats: {
         "service": _str, "instance": _str, "values": _str_map(_float), "timestamp": _float,
@@ -515,6 +523,26 @@ def _check_local_report(m: LocalGraphReport) -> None:
     _check_counters(m, "weights_version", "env_steps", "updates", "num_transitions")
 
 
+def _check_skill_batch(m: SkillBatch) -> None:
+    steps = (len(m.transitions),)
+    for name in ("slot", "b", "started"):
+        shape = getattr(m, name).shape
+        _require(shape == steps, "inconsistent", f"SkillBatch.{name}: shape {shape}, want {steps}")
+    _require(m.phase in SKILL_PHASES, "bad_field", f"SkillBatch.phase: {_short(m.phase)}")
+    _require(bool((m.slot >= -1).all()), "bad_array", "SkillBatch.slot: below -1")
+    _require(bool((m.b >= 0).all()), "bad_array", "SkillBatch.b: negative")
+
+
+def _check_induced(m: InducedGraphs) -> None:
+    t, d = m.graphs.shape[0], m.graphs.shape[1]
+    _require(1 <= t <= MAX_STEPS, "bad_field", f"InducedGraphs: {t} steps")
+    _check_graph(m.graphs, (t, d, d + 1), "InducedGraphs.graphs")
+    _check_counters(m, "seq", "weights_version")
+    for name in ("kind", "worker_id"):
+        ok = _KEY_SEGMENT.fullmatch(getattr(m, name)) is not None
+        _require(ok, "bad_field", f"InducedGraphs.{name}: {_short(getattr(m, name))}")
+
+
 def _check_control(m: Control) -> None:
     _require(m.command in CONTROL_COMMANDS, "bad_field", f"Control.command: {_short(m.command)}")
 
@@ -532,6 +560,8 @@ _VALIDATORS: Final[dict[type, Callable[[Any], None]]] = {
     Weights: _check_weights,
     GraphReport: _check_graph_report,
     LocalGraphReport: _check_local_report,
+    SkillBatch: _check_skill_batch,
+    InducedGraphs: _check_induced,
     Control: _check_control,
     ServiceStats: _check_stats,
 }

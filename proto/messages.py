@@ -21,6 +21,8 @@ SCHEMA_VERSION = 7
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
 CONTROL_COMMANDS = ("pause", "resume", "checkpoint", "stop", "set_task", "scale")
+SKILL_PHASES = ("pretrain", "task")
+"""SkiLD's phases (ch. 6): reward-free skill pre-training, then task learning over the frozen skills."""
 EDGE_RULES = ("fixed", "fdr")
 """How a graph report decides its edges: CMI >= threshold, or tests at a false-discovery rate."""
 
@@ -243,6 +245,44 @@ class LocalGraphReport:
 
 
 @dataclass(frozen=True)
+class SkillBatch:
+    """Transitions collected by SkiLD's skill policy, with the skill each step ran (schema version 7).
+
+    A skill is ``z = (G, b)``: ``slot`` indexes the learner's graph history's targets (append-only,
+    so a slot names the same target graph in every later policy version; -1: no target yet), ``b``
+    is the diversity index. ``started`` marks the steps where a new skill was picked (by the graph
+    selector in ``pretrain``, by the task policy in ``task``, whose option is ``slot * K + b``)."""
+
+    TYPE: ClassVar[str] = "SkillBatch"
+    transitions: TransitionBatch
+    phase: str
+    """One of ``SKILL_PHASES``: the phase of the policy that collected the batch."""
+    slot: np.ndarray
+    """int32 [T]: the running skill's target slot, -1 while the history has no target"""
+    b: np.ndarray
+    """int32 [T]: the running skill's diversity index"""
+    started: np.ndarray
+    """bool [T]: a skill was picked at this step"""
+
+
+@dataclass(frozen=True)
+class InducedGraphs:
+    """The local graphs a method's estimator induced for every step of one TransitionBatch (schema
+    version 7): the graph-evaluator's answer to SkiLD's question "which dependencies did this step
+    induce?" (pCMI >= the method's threshold, self-edges always, an unchanged factor only its own)."""
+
+    TYPE: ClassVar[str] = "InducedGraphs"
+    kind: str
+    """The method whose model scored them."""
+    worker_id: str
+    seq: int
+    """The TransitionBatch ``(worker_id, seq)`` the graphs belong to."""
+    weights_version: int
+    graphs: np.ndarray
+    """uint8 [T, d_S, d_S + 1]"""
+
+
+@dataclass(frozen=True)
 class Control:
     """An operator command for one service (or ``*``)."""
 
@@ -267,3 +307,4 @@ MESSAGE_TYPES: dict[str, type] = {
     cls.TYPE: cls
     for cls in (EnvSpec, TransitionBatch, FrameBatch, ScoredBatch, Weights, GraphReport, LocalGraphReport, Control, ServiceStats)
 }
+MESSAGE_TYPES.update({cls.TYPE: cls for cls in (SkillBatch, InducedGraphs)})  # SkiLD (ch. 6)

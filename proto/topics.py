@@ -44,6 +44,18 @@ def scored(run: str, worker: str = "*") -> str:
     return f"{ROOT}/{run}/scored/{worker}"
 
 
+def skills(run: str, worker: str = "*") -> str:
+    """SkiLD's skill-labelled transitions of env-worker ``worker`` (SkillBatch)."""
+    _check(run, worker)
+    return f"{ROOT}/{run}/skills/{worker}"
+
+
+def induced(run: str, kind: str = "*", worker: str = "*") -> str:
+    """Local graphs method ``kind``'s estimator induced for worker ``worker``'s batches (InducedGraphs)."""
+    _check(run, kind, worker)
+    return f"{ROOT}/{run}/induced/{kind}/{worker}"
+
+
 def weights(run: str, model: str = "*") -> str:
     _check(run, model)
     return f"{ROOT}/{run}/weights/{model}"

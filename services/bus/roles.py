@@ -41,11 +41,16 @@ and whether a first put got through depended on timing. Those declarations carry
 key expression, so a publisher is allowed the subscriptions of every role that meet its keys (see
 ``_allowed_messages``); the querier's egress ``declare_queryable`` likewise.
 
+In a run of SkiLD (``--method skild``) the env-worker also publishes skills/* and subscribes to and
+queries weights/skild-policy, the graph-evaluator publishes induced/<m>/*, and the policy-learner
+subscribes to skills/* and induced/<m>/* and serves weights/skild-policy (:data:`SKILL_KEYS`).
+
 This module is pure: :func:`run_roles` declares, :func:`access_control` renders the router's JSON,
 :func:`new_passwords` draws passwords; files are written by :mod:`services.bus.credentials`.
 """
 from __future__ import annotations
 
+import dataclasses
 import secrets
 from dataclasses import dataclass
 from typing import Any
@@ -61,6 +66,8 @@ FRAMES_ROLE = "factor-extractor"
 """The role of a run with frames only (:func:`run_roles` with ``frames=True``)."""
 POLICY_MODEL = "policy"
 """The policy-learner's weights topic segment (``causal.rl.policy_weights.MODEL``)."""
+SKILD_POLICY_MODEL = "skild-policy"
+"""SkiLD's skill/task policies' weights topic segment (``causal.skild_policy.MODEL``)."""
 
 
 @dataclass(frozen=True)
@@ -132,7 +139,32 @@ def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: b
              tokens=(topics.alive(run, "supervisor", "0"),)),
         Role("operator", publish=(topics.control(run),), subscribe=(topics.stats(run),), watch=(topics.alive(run),)),
     )
-    return {role.name: role for role in roles}
+    return {role.name: _with_skills(role, run, method) for role in roles}
+
+
+SKILL_KEYS = {
+    "env-worker": {"publish": ("skills",), "subscribe": ("skild-policy",), "query": ("skild-policy",)},
+    "graph-evaluator": {"publish": ("induced",)},
+    "policy-learner": {"subscribe": ("skills", "induced"), "serve": ("skild-policy",)},
+}
+"""SkiLD's extra keys per role (a ``skild`` run only): names resolved by :func:`_skill_key`."""
+
+
+def _skill_key(run: str, method: str, name: str) -> str:
+    return {"skills": topics.skills(run), "induced": topics.induced(run, method),
+            "skild-policy": topics.weights(run, SKILD_POLICY_MODEL)}[name]
+
+
+def _with_skills(role: Role, run: str, method: str) -> Role:
+    """``role`` with SkiLD's keys added in a run of method ``skild`` (a served key is published too)."""
+    extra = SKILL_KEYS.get(role.name) if method == "skild" else None
+    if not extra:
+        return role
+    keys = {cap: tuple(_skill_key(run, method, n) for n in names) for cap, names in extra.items()}
+    publish = keys.get("publish", ()) + keys.get("serve", ())
+    return dataclasses.replace(role, publish=role.publish + publish,
+                               subscribe=role.subscribe + keys.get("subscribe", ()),
+                               serve=role.serve + keys.get("serve", ()), query=role.query + keys.get("query", ()))
 
 
 def _allowed_messages(role: Role, roles: dict[str, Role]) -> dict[tuple[str, str], set[str]]:

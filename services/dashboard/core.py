@@ -13,6 +13,7 @@ from typing import TypeVar
 
 from proto.messages import GraphReport, LocalGraphReport, ServiceStats
 from services.dashboard.cells import cause_names, classify, count_outcomes, short
+from services.dashboard.coverage import run_coverage
 from services.dashboard.local_graph import LocalPoint, local_graph_document
 from services.dashboard.reward_graph import reward_document
 
@@ -147,8 +148,10 @@ class DashboardState:
             if state is None:
                 return None
             graph = graph_document(state.report, state.received_at) if state.report is not None else None
+            services = self._services(state, now)
             return {"run": run, "server_time": now, "graph": graph, "history": [asdict(p) for p in state.curve],
-                    "local_graph": self._local_document(state), "services": self._services(state, now)}
+                    "local_graph": self._local_document(state), "services": services,
+                    "induced_coverage": run_coverage(services)}
 
     def _local_document(self, state: RunState) -> dict | None:
         if state.local is None:

@@ -19,6 +19,7 @@ from proto.messages import GraphReport, LocalGraphReport, ServiceStats
 from services.bus.base import Transport
 from services.dashboard.config import DashboardConfig
 from services.dashboard.core import DashboardState
+from services.dashboard.coverage import run_coverage
 from services.dashboard.web import DashboardServer, EventHub, WebMetrics, to_json
 from services.runtime.config import parse_config, write_config
 from services.runtime.shell import Inbox, ServiceShell, setup_logging
@@ -70,8 +71,9 @@ class _Pusher:
             return
         for run in self._stats_runs:
             if self.hub.watching(run):
-                self.hub.push(run, "services", to_json({"run": run, "server_time": now,
-                                                        "services": self.state.services(run, now)}))
+                services = self.state.services(run, now)
+                self.hub.push(run, "services", to_json({"run": run, "server_time": now, "services": services,
+                                                        "induced_coverage": run_coverage(services)}))
         self._stats_runs.clear()
         self._last_services = now
 

@@ -24,6 +24,8 @@ class EnvWorkerConfig(ServiceConfig):
     publish_frames: bool = doc(False, "publish the steps as frames (FrameBatch on frames/<worker>, for the factor-extractor) "
                                       "instead of transitions; the env must render them (chemical-pixels)")
     frame_stride: int = doc(1, "publish_frames: keep every n-th pixel along each side of a frame (downsampling)")
+    skild: bool = doc(False, "act with SkiLD's skill/task policies (weights/skild-policy; no steps before they "
+                             "arrive) and publish each batch's skill labels too (SkillBatch on skills/<worker>)")
     policy_poll_s: float = doc(5.0, "follow_policy: also ask for the latest policy this often, so a missed update is caught")
 
     def __post_init__(self) -> None:

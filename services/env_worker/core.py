@@ -12,6 +12,7 @@ import numpy as np
 
 from envs.registry import EnvEntry, env_entry
 from proto.messages import EnvSpec, FrameBatch, TransitionBatch, Weights
+from proto.messages import SkillBatch
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.episodes import EpisodeStats
 from services.env_worker.frames import FrameRecorder
@@ -177,6 +178,12 @@ class EnvWorkerCore:
         seed = cfg.seed + cfg.worker_index + GENERATION_SEED_STRIDE * generation
         self.random_policy = default_policy(self.entry, self.env.action_space, seed)
         self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())
+        self.skild = None
+        if cfg.skild:
+            from causal.skild_policy import SkildActor
+
+            self.skild = SkildActor(seed)
+            """SkiLD's skill/task policies (``cfg.skild``): the only collection policy, once loaded."""
         self.observation, info = self.env.reset(seed=seed)
         self.recorder = FrameRecorder(info, cfg.frame_stride) if cfg.publish_frames else None
         self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
@@ -191,12 +198,43 @@ class EnvWorkerCore:
 
     @property
     def policy(self) -> RandomPolicy | PolicyActor:
-        """The collection policy: the newest policy weights once any arrived, random before."""
+        """The collection policy: the newest policy weights once any arrived, random before (SkiLD: its
+        policies only; :attr:`waiting` until they arrive)."""
+        if self.skild is not None:
+            return self.skild
         return self.actor if self.actor.version > 0 else self.random_policy
+
+    @property
+    def waiting(self) -> bool:
+        """A SkiLD worker before its first policy: it takes no step (every step is a skill's)."""
+        return self.skild is not None and self.skild.version == 0
 
     def apply_weights(self, weights: Weights) -> bool:
         """Act with ``weights`` from the next batch on, if newer (ValueError if they do not fit)."""
-        return self.actor.load(weights)
+        if self.skild is None:
+            return self.actor.load(weights)
+        from causal.skild_policy import SkildPolicyConfig
+
+        cfg = SkildPolicyConfig.from_json(weights.config_json)
+        if cfg.sizes != tuple(self.spec.factor_sizes) or cfg.actions != self.spec.action_size:
+            raise ValueError(f"a SkiLD policy for factor sizes {cfg.sizes} and {cfg.actions} actions; this env has "
+                             f"{tuple(self.spec.factor_sizes)} and {self.spec.action_size}")
+        phase = self.skild.phase
+        loaded = self.skild.load(weights.version, weights.config_json, weights.tensors)
+        if loaded and phase and self.skild.phase != phase:
+            self.episodes = EpisodeStats(self.episodes.num_stages)  # task metrics from the task phase only
+        return loaded
+
+    def skill_batch(self, batch: TransitionBatch) -> SkillBatch:
+        """A SkiLD worker's ``batch`` (just collected) with the skill each of its steps ran."""
+        slot, b, started = self.skild.take_labels()
+        if len(slot) != len(batch):
+            raise RuntimeError(f"{len(slot)} skill labels for a batch of {len(batch)} steps")
+        return SkillBatch(transitions=batch, phase=self.skild.phase, slot=slot, b=b, started=started)
+
+    def collect_skills(self, steps: int | None = None) -> SkillBatch:
+        """A SkiLD worker's batch: the transitions and the skill each step ran."""
+        return self.skill_batch(self.collect(steps))
 
     def collect(self, steps: int | None = None) -> TransitionBatch:
         """Step the environment ``steps`` times (resetting at episode ends) and return the batch."""

@@ -26,7 +26,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     generation = next_generation(Path(cfg.run_dir) / "checkpoints" / f"{SERVICE}-{cfg.instance}.json")
     core = EnvWorkerCore(cfg, generation)
     cfg = core.cfg
-    if cfg.follow_policy:
+    if cfg.follow_policy or cfg.skild:
         import torch
 
         from causal.rl.policy_weights import warm_up
@@ -50,7 +50,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     spec_key = topics.frames_spec(cfg.run_id) if cfg.publish_frames else topics.env_spec(cfg.run_id)
     spec_value = shell.transport.serve_latest(spec_key)
     spec_value.set(encode(core.spec))
-    follower = _PolicyFollower(shell, core, cfg) if cfg.follow_policy else None
+    follower = _PolicyFollower(shell, core, cfg) if cfg.follow_policy or cfg.skild else None
     if cfg.publish_frames:
         topic, collect = topics.frames(cfg.run_id, core.worker_id), core.collect_frames
     else:
@@ -64,9 +64,14 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                 continue
             if follower is not None:
                 follower.update()
+            if core.waiting:  # SkiLD: every step is a skill's
+                time.sleep(0.05)
+                continue
             batch = collect()
             t0 = time.perf_counter()
             sent.inc(shell.publish(topic, batch))
+            if core.skild is not None:
+                sent.inc(shell.publish(topics.skills(cfg.run_id, core.worker_id), core.skill_batch(batch)))
             publish_seconds.observe(time.perf_counter() - t0)
             steps.inc(len(batch))
             batches.inc()
@@ -83,7 +88,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             _throttle(cfg.max_steps_per_second, core.env_steps, started)
     finally:
         shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": core.policy.version,
-                    **chosen}, force=True)
+                    **core.episodes.values(), **chosen}, force=True)
         spec_value.close()
         shell.close()
 
@@ -95,9 +100,10 @@ class _PolicyFollower:
 
     def __init__(self, shell: ServiceShell, core: EnvWorkerCore, cfg: EnvWorkerConfig) -> None:
         from causal.rl.policy_weights import MODEL
+        from causal.skild_policy import MODEL as SKILD_MODEL
 
         self.shell, self.core, self.cfg = shell, core, cfg
-        self.key = topics.weights(cfg.run_id, MODEL)
+        self.key = topics.weights(cfg.run_id, SKILD_MODEL if cfg.skild else MODEL)
         self.inbox: Inbox = shell.inbox("policy", Weights, maxsize=4)
         shell.subscribe(self.key, self.inbox)
         m = shell.metrics
@@ -126,7 +132,7 @@ class _PolicyFollower:
         return found
 
     def _load(self, weights: Weights) -> None:
-        before = self.core.actor.version
+        before = self.core.policy.version
         try:
             if not self.core.apply_weights(weights):
                 return

@@ -32,6 +32,8 @@ class GraphEvaluatorConfig(ServiceConfig):
                                       "local-graph estimator, on envs whose workers send local graphs)")
     local_samples: int = doc(1_000, "held-out transitions whose local graphs are scored per evaluation")
     local_examples: int = doc(4, "example transitions each local-graph report carries for display")
+    induced_graphs: bool = doc(False, "publish the local graphs the method's estimator induces for every step of every "
+                                      "batch (InducedGraphs on induced/<method>/<worker>): SkiLD's induced graphs")
 
     def __post_init__(self) -> None:
         super().__post_init__()

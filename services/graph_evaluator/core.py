@@ -21,7 +21,8 @@ from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
 from proto.fits import check_fits
-from proto.messages import EnvSpec, GraphReport, LocalGraphReport, TransitionBatch, Weights
+from causal.skild import induced_local_graphs
+from proto.messages import EnvSpec, GraphReport, InducedGraphs, LocalGraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.local import LocalGraphScorer
 from services.graph_evaluator.reward import abstraction_metrics, reward_metrics
@@ -107,6 +108,20 @@ class GraphEvaluatorCore:
     @property
     def local_due(self) -> bool:
         return self.local is not None and self.local.due(self.weights, self.cfg.min_heldout)
+
+    def induced(self, batch: TransitionBatch) -> InducedGraphs | None:
+        """The local graphs the current model induces for every step of ``batch`` (SkiLD: its estimator's
+        scores at its threshold, :func:`causal.skild.induced_local_graphs`); None before any model."""
+        if self.model is None or self.method.local_graph is None:
+            return None
+        state, action, next_state = (torch.from_numpy(x).to(self.device)
+                                     for x in (batch.state, batch.action, batch.next_state))
+        with torch.no_grad():
+            scores = np.asarray(self.method.local_graph.scores(self.model, state, action, next_state))
+        graphs = induced_local_graphs(scores, float(self.method.local_graph.threshold(self.model)),
+                                      batch.state, batch.next_state)
+        return InducedGraphs(kind=self.kind, worker_id=batch.worker_id, seq=batch.seq,
+                             weights_version=self.weights.version, graphs=graphs.astype(np.uint8))
 
     def evaluate_local(self, every: bool = False) -> LocalGraphReport:
         """The method's local graphs of held-out transitions scored against their true local graphs

@@ -38,6 +38,10 @@ class _Metrics:
         self.local_scores = {name: m.gauge(f"causeway_local_graph_{name}_ratio",
                                            f"Local graphs of held-out transitions: {name} against their true local graphs")
                              for name in LOCAL_SCORES}
+        self.induced = m.counter("causeway_induced_graph_batches",
+                                 "Batches whose induced local graphs were published (SkiLD: InducedGraphs)")
+        self.induced_skipped = m.counter("causeway_induced_graph_batches_skipped",
+                                         "Batches that got no induced graphs (no model yet)")
         self.local_reports = m.counter("causeway_local_graph_reports", "LocalGraphReports published")
         self.local_heldout = m.gauge("causeway_local_graph_heldout_transitions",
                                      "Held-out transitions kept with their true local graphs")
@@ -87,10 +91,11 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
     try:
         while not shell.stopping.is_set():
             shell.poll_control()
-            for _, batch in transitions.drain():
-                shell.guarded(core.ingest, batch)
             for _, w in weights.drain():
                 _load(core, w, shell)
+            for _, batch in transitions.drain():
+                if shell.guarded(core.ingest, batch) is not None and cfg.induced_graphs:
+                    _publish_induced(shell, core, batch, metrics)
             metrics.heldout.set(core.heldout.size)
             now = time.monotonic()
             if not shell.paused and core.due and now - last_eval >= cfg.min_interval_s:
@@ -122,6 +127,16 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
         latest_graph.close()
         latest_local.close()
         shell.close()
+
+
+def _publish_induced(shell: ServiceShell, core: GraphEvaluatorCore, batch: TransitionBatch, metrics: _Metrics) -> None:
+    """SkiLD's induced graphs of every step of ``batch`` (none before the first weights)."""
+    induced = core.induced(batch)
+    if induced is None:
+        metrics.induced_skipped.inc()
+        return
+    shell.publish(topics.induced(shell.cfg.run_id, core.kind, batch.worker_id), induced)
+    metrics.induced.inc()
 
 
 def _catch_up(shell: ServiceShell, core: GraphEvaluatorCore, cfg: GraphEvaluatorConfig) -> None:

@@ -3,10 +3,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from causal.methods import method_configs_class
 from causal.rl import PPOConfig, SACConfig
+from causal.skild_agent import SkillLearnerConfig
+from proto.settings import section
 from services.runtime.config import ServiceConfig, doc
 
 ALGOS = ("ppo", "sac")
+SKILD_GRAPHS = ("evaluator", "true")
+MethodConfigs = method_configs_class()
 
 
 @dataclass(frozen=True)
@@ -41,6 +46,17 @@ class PolicyLearnerConfig(ServiceConfig):
     action_high: float = doc(1.0, "continuous actions: upper bound of every dimension")
     publish_every_updates: int = doc(0, "updates between weight publications (0: PPO 1, SAC 100)")
     max_updates: int = doc(0, "stop after this many updates (0: never)")
+    skild: bool = doc(False, "SkiLD (ch. 6): learn skills from SkillBatches (skills/*), then a task policy over them")
+    skild_pretrain_steps: int = doc(20_000, "SkiLD: env steps of reward-free skill pre-training before task learning "
+                                            "starts (the low level then frozen)")
+    skild_graphs: str = doc("evaluator", "SkiLD: induced graphs from the graph-evaluator's estimator (InducedGraphs, "
+                                         "pCMI) or the env's true local graphs (true: the chapter's ablation)",
+                            choices=SKILD_GRAPHS)
+    skild_updates_per_env_step: float = doc(0.0625, "SkiLD: skill Q-network updates per pre-training env step "
+                                                    "(benchmarks/skild_coverage: one per step of 16 envs)")
+    skill: SkillLearnerConfig = section(SkillLearnerConfig, prefix="skill",
+                                        help="SkiLD's skill learner (low-level DQN, graph selector)")
+    models: MethodConfigs = section(MethodConfigs, prefix="", help="every method's hyper-parameters")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -48,6 +64,10 @@ class PolicyLearnerConfig(ServiceConfig):
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
         if self.skills and self.algo != "ppo":
             raise ValueError("a policy over skills is learned with PPO (algo=ppo)")
+        if self.skild and self.algo != "ppo":
+            raise ValueError("SkiLD's task policy is learned with PPO (algo=ppo)")
+        if self.skild_pretrain_steps < 0 or not self.skild_updates_per_env_step >= 0:
+            raise ValueError("skild_pretrain_steps and skild_updates_per_env_step must be >= 0")
         if self.max_policy_lag < 0:
             raise ValueError("max_policy_lag must be >= 0")
 

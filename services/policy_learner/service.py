@@ -6,11 +6,13 @@ import sys
 import time
 
 from proto import topics
-from proto.messages import GraphReport, ScoredBatch, TransitionBatch
+from proto.messages import GraphReport, InducedGraphs, ScoredBatch, SkillBatch, TransitionBatch
 from services.bus.base import Transport
 from services.policy_learner.config import PolicyLearnerConfig
 from services.policy_learner.core import DROP_REASONS, PolicyLearnerCore, Verdict
 from causal.rl.policy_weights import MODEL
+from causal.skild_policy import MODEL as SKILD_MODEL
+from services.policy_learner.skild import DROP_REASONS as SKILD_DROP_REASONS, SkildLearnerCore
 from services.runtime.shell import Inbox, ServiceShell, service_main
 
 SERVICE = "policy-learner"
@@ -39,6 +41,9 @@ class _Metrics:
 
 def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
     """Train on (scored) batches within the lag bound; publish every version (also to late queries)."""
+    if cfg.skild:
+        run_skild(cfg, transport)
+        return
     shell = ServiceShell(SERVICE, cfg, transport)
     metrics = _Metrics(shell)
     source = shell.inbox("scored" if cfg.scored else "transitions", ScoredBatch if cfg.scored else TransitionBatch,
@@ -97,6 +102,88 @@ def _drain(core: PolicyLearnerCore, source: Inbox, graphs: Inbox, shell: Service
 def _publish(shell: ServiceShell, core, latest, metrics: _Metrics) -> None:
     metrics.weights_bytes.inc(shell.set_latest(latest, core.weights()))
     metrics.version.set(core.version)
+
+
+class _SkildMetrics:
+    def __init__(self, shell: ServiceShell) -> None:
+        m = shell.metrics
+        self.updates = m.counter("causeway_skild_updates", "SkiLD updates, by part (skill Q-network, graph "
+                                 "selector, task policy)", ("part",))
+        self.steps = m.counter("causeway_skild_env_steps", "Env steps of skill data taken in, by phase", ("phase",))
+        self.dropped = m.counter("causeway_skild_dropped", "SkillBatches dropped by the learner, by reason", ("reason",))
+        self.phase = m.gauge("causeway_skild_task_phase", "1 once task learning started (the skills frozen), else 0")
+        self.targets = m.gauge("causeway_skild_targets", "Target graphs in the graph history")
+        self.version = m.gauge("causeway_policy_version", "Version of the last published policy weights")
+        self.weights_bytes = m.counter("causeway_policy_weights_bytes_published", "Bytes of policy weights published")
+        for part in ("skill", "selector", "task"):
+            self.updates.labels(part=part)
+        for phase in ("pretrain", "task"):
+            self.steps.labels(phase=phase)
+        for reason in SKILD_DROP_REASONS:
+            self.dropped.labels(reason=reason)
+        self.seen = {"skill": 0, "selector": 0, "task": 0, "pretrain": 0, "task_steps": 0}
+
+    def observe(self, core: SkildLearnerCore) -> None:
+        now = {"skill": core.updates, "selector": core.selector_updates, "task": core.task_updates,
+               "pretrain": core.pretrain_steps, "task_steps": core.task_steps}
+        for part in ("skill", "selector", "task"):
+            self.updates.labels(part=part).inc(now[part] - self.seen[part])
+        self.steps.labels(phase="pretrain").inc(now["pretrain"] - self.seen["pretrain"])
+        self.steps.labels(phase="task").inc(now["task_steps"] - self.seen["task_steps"])
+        self.seen = now
+        self.phase.set(float(core.phase == "task"))
+        self.targets.set(len(core.agent.history.targets))
+
+
+def run_skild(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
+    """SkiLD: skill pre-training then task learning from SkillBatches and their induced graphs; every
+    version of the skill/task policies published on weights/skild-policy (also to late queries)."""
+    shell = ServiceShell(SERVICE, cfg, transport)
+    metrics = _SkildMetrics(shell)
+    source = shell.inbox("skills", (SkillBatch, InducedGraphs), maxsize=512)
+    shell.subscribe(topics.skills(cfg.run_id), source)
+    if cfg.skild_graphs == "evaluator":
+        shell.subscribe(topics.induced(cfg.run_id, cfg.method), source)
+    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, SKILD_MODEL))
+    spec = shell.wait_for_spec()
+    if spec is None:
+        latest.close()
+        shell.close()
+        return
+    core = SkildLearnerCore(cfg, spec)
+    ckpt = shell.resume(core)
+    _publish(shell, core, latest, metrics)
+    log.info("published SkiLD policy v%d (%s phase, induced graphs: %s)", core.version, core.phase, cfg.skild_graphs)
+    last_ckpt = time.monotonic()
+    try:
+        while not shell.stopping.is_set():
+            shell.poll_control()
+            for _, message in source.drain():
+                reason = shell.guarded(core.ingest, message)
+                if reason:
+                    metrics.dropped.labels(reason=reason).inc()
+            if core.maybe_switch():
+                log.info("pre-training budget spent (%d env steps, %d targets): task learning, skills frozen",
+                         core.pretrain_steps, len(core.agent.history.targets))
+            if shell.paused or not core.ready:
+                time.sleep(0.01)
+            else:
+                core.train_step()
+            if core.publish_due:
+                _publish(shell, core, latest, metrics)
+            metrics.observe(core)
+            now = time.monotonic()
+            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
+                core.checkpoint(ckpt)
+                shell.checkpoint_requested, last_ckpt = False, now
+            shell.beat(core.progress())
+            if cfg.max_updates and core.updates + core.task_updates >= cfg.max_updates:
+                break
+    finally:
+        core.checkpoint(ckpt)
+        shell.beat(core.progress(), force=True)
+        latest.close()
+        shell.close()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -78,13 +78,15 @@ class RunConfig(RunSettings):
     models: MethodConfigs = section(MethodConfigs, prefix="")
     learner: DynamicsLearnerConfig = section(DynamicsLearnerConfig, prefix="learner",
                                              exclude=SERVICE_FIELDS + ("models",), publish_every_s=5.0)
-    evaluator: GraphEvaluatorConfig = section(GraphEvaluatorConfig, prefix="evaluator", exclude=SERVICE_FIELDS,
+    evaluator: GraphEvaluatorConfig = section(GraphEvaluatorConfig, prefix="evaluator",
+                                              exclude=SERVICE_FIELDS + ("induced_graphs",),
                                               min_interval_s=5.0)
     worker: EnvWorkerConfig = section(EnvWorkerConfig, prefix="worker",
-                                      exclude=SERVICE_FIELDS + ("env", "env_options", "worker_index", "follow_policy"),
+                                      exclude=SERVICE_FIELDS + ("env", "env_options", "worker_index", "follow_policy",
+                                                                "skild"),
                                       max_steps_per_second=2000.0)
     policy: PolicyLearnerConfig = section(PolicyLearnerConfig, prefix="policy",
-                                          exclude=SERVICE_FIELDS + ("algo", "skills", "scored"))
+                                          exclude=SERVICE_FIELDS + ("algo", "skills", "scored", "skild", "models"))
     intrinsic_reward: IntrinsicRewardConfig = section(IntrinsicRewardConfig, prefix="intrinsic",
                                                       exclude=SERVICE_FIELDS + ("reward",))
     extractor: FactorExtractorConfig = section(FactorExtractorConfig, prefix="extractor", exclude=SERVICE_FIELDS,

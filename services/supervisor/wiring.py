@@ -58,6 +58,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
     if method.envs and cfg.env not in method.envs:
         raise ValueError(f"method {cfg.method!r} runs on {', '.join(method.envs)} only, not {cfg.env!r}")
     _check_policy(cfg, method.intrinsic)
+    _check_skill_discovery(cfg, entry)
     if cfg.target_f1 and method.global_graph is None:
         raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
     _check_edge_tests(cfg, method)
@@ -101,6 +102,28 @@ def _check_edge_tests(cfg: RunConfig, method: Method) -> None:
                          f"undecided); method {cfg.method!r} has none")
 
 
+def skill_discovery(cfg: RunConfig) -> bool:
+    """Whether the run is SkiLD's (ch. 6): its policy-learner learns skills then a task policy over
+    them, the env-workers act with those policies and the evaluator sends the induced graphs."""
+    return cfg.method == "skild"
+
+
+def _check_skill_discovery(cfg: RunConfig, entry: EnvEntry) -> None:
+    if not skill_discovery(cfg):
+        return
+    if cfg.collector != "random" or cfg.intrinsic != "none":
+        raise ValueError("SkiLD collects with its own skill and task policies: leave --collector random and "
+                         "--intrinsic none")
+    spec = run_env_spec(cfg)
+    if spec.action_kind != "categorical" or any(k != "categorical" for k in spec.factor_kinds):
+        raise ValueError(f"SkiLD learns over categorical factors and actions; {cfg.env} has others")
+    if cfg.policy.skild_graphs == "true" and not entry.has_local_truth:
+        raise ValueError(f"--policy-skild-graphs true needs the env's true local graphs; {cfg.env} has none")
+    if cfg.max_env_steps and cfg.max_env_steps <= cfg.policy.skild_pretrain_steps:
+        raise ValueError(f"--max-env-steps {cfg.max_env_steps} leaves no task learning after "
+                         f"--policy-skild-pretrain-steps {cfg.policy.skild_pretrain_steps}")
+
+
 def _check_policy(cfg: RunConfig, served: tuple[str, ...]) -> None:
     if cfg.intrinsic != "none":
         if cfg.collector == "random":
@@ -126,14 +149,17 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
         return cfg.metrics_base_port + offset if cfg.metrics_base_port else 0
 
     entry = env_entry(cfg.env)
+    skills = skill_discovery(cfg)
     configs = {
         "dynamics-learner": dataclasses.replace(cfg.learner, **common, metrics_port=port(1), models=cfg.models),
-        "graph-evaluator": dataclasses.replace(cfg.evaluator, **common, metrics_port=port(2)),
+        "graph-evaluator": dataclasses.replace(cfg.evaluator, **common, metrics_port=port(2),
+                                               induced_graphs=skills and cfg.policy.skild_graphs == "evaluator"),
         "dashboard": DashboardConfig(**common, metrics_port=port(3), http_host=LOOPBACK,
                                      http_port=cfg.dashboard_port, watch_run=cfg.run_id),
         "policy-learner": dataclasses.replace(
             cfg.policy, **common, metrics_port=port(4), algo=cfg.collector if cfg.collector != "random" else "ppo",
-            scored=cfg.intrinsic != "none", skills=cfg.collector == "ppo" and bool(entry.skills)),
+            scored=cfg.intrinsic != "none", skills=cfg.collector == "ppo" and bool(entry.skills),
+            skild=skills, models=cfg.models),
         "intrinsic-reward": dataclasses.replace(cfg.intrinsic_reward, **common, metrics_port=port(5),
                                                 reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff"),
         "env-worker": worker_config(cfg, connect, worker_index),
@@ -163,7 +189,7 @@ def learning_services(cfg: RunConfig) -> tuple[str, ...]:
     method = get_method(cfg.method)
     graphs = method.global_graph is not None or method.local_graph is not None
     return (("factor-extractor",) if cfg.worker.publish_frames else ()) + (("dynamics-learner",) + (("graph-evaluator",) if graphs else ())
-            + (("policy-learner",) if cfg.collector != "random" else ())
+            + (("policy-learner",) if cfg.collector != "random" or skill_discovery(cfg) else ())
             + (("intrinsic-reward",) if cfg.intrinsic != "none" else ()))
 
 
@@ -172,7 +198,9 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
     return dataclasses.replace(cfg.worker, **shared_settings(cfg), run_id=cfg.run_id, zenoh_connect=connect,
                                run_dir=cfg.run_dir, metrics_port=port, metrics_host=LOOPBACK, instance=str(index), env=cfg.env,
                                env_options=cfg.env_options, worker_index=index,
-                               follow_policy=cfg.collector != "random", local_graphs=scores_local_graphs(cfg),
+                               follow_policy=cfg.collector != "random", skild=skill_discovery(cfg),
+                               local_graphs=scores_local_graphs(cfg) or (skill_discovery(cfg) and
+                                                                         cfg.policy.skild_graphs == "true"),
                                bus_credentials=credentials_path(cfg, "env-worker"))
 
 

@@ -205,7 +205,22 @@ function onServices(message) {
   view.services = message.services;
   view.servicesAt = Date.now();
   renderServices();
+  renderCoverage(message.induced_coverage);
 }
+
+// SkiLD's induced-graph coverage: one row per dependency, one column per phase (share of episodes).
+function renderCoverage(coverage) {
+  $('coverage-panel').hidden = !coverage;
+  if (!coverage) return;
+  const phases = Object.keys(coverage);
+  const rows = [...new Set(phases.flatMap((p) => Object.keys(coverage[p].rows)))];
+  const head = html('tr', {}, [html('th', { text: 'dependency' }),
+    ...phases.map((p) => html('th', { text: `${p} (${fmt.int(coverage[p].episodes)} episodes)` }))]);
+  const body = rows.map((row) => html('tr', {}, [html('td', { text: row }),
+    ...phases.map((p) => html('td', { text: fmt.ratio(coverage[p].rows[row]) }))]));
+  $('coverage-table').replaceChildren(head, ...body);
+}
+
 
 function connect() {
   if (view.source) view.source.close();
