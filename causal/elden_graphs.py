@@ -17,18 +17,25 @@ from causal.elden import ELDENModel, Targets
 def jacobian_graphs(model: ELDENModel, x: torch.Tensor, targets: Targets) -> torch.Tensor:
     """Per-member local-graph scores ``[M, B, d_S, d_S + 1]`` for encoded inputs ``x`` and their
     targets: shared by every member (``x`` [B, T, W]) or one batch per member (``x`` [M, B, T, W]).
+    :func:`input_jacobian` reduced per input variable (:meth:`ELDENModel.reduce_inputs`)."""
+    inputs = model.per_member(x)
+    return model.reduce_inputs(input_jacobian(model, inputs, targets), inputs[:, :, None])
+
+
+def input_jacobian(model: ELDENModel, inputs: torch.Tensor, targets: Targets) -> torch.Tensor:
+    """``d q(s^j_{t+1}) / d x`` for every member, sample, output and input entry, ``[M, B, d_S, T, W]``,
+    of every member's inputs ``[M, B, T, W]``.
 
     ``jacrev`` of the quantity summed over members and samples, with respect to every member's
     copy of the inputs: a sample's output depends on that sample's inputs only, so this is each
     sample's own Jacobian (what ``vmap`` over samples gives) from ``d_S`` batched vector-Jacobian
     products over the whole batch."""
-    params, inputs = model.params(), model.per_member(x)
+    params = model.params()
 
     def summed(xs: torch.Tensor) -> torch.Tensor:
         return model.graph_quantity(model.raw(params, xs), targets).sum(dim=(0, 1))
 
-    jacobian = jacrev(summed)(inputs)  # [d_S, M, B, T, W]
-    return model.reduce_inputs(jacobian.movedim(0, 2), inputs[:, :, None])
+    return jacrev(summed)(inputs).movedim(0, 2)  # jacrev puts the outputs first: [d_S, M, B, T, W]
 
 
 @torch.no_grad()
