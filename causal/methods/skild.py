@@ -1,15 +1,16 @@
 """SkiLD (dissertation ch. 6) as a Causeway method: the dynamics model whose point-wise CMI gives the
 induced local graphs (pCMI >= 0.02, the chapter's estimator), with SkiLD's skill settings.
 
-What the services run for ``--method skild`` today: the dynamics-learner trains CDL's factored model
+What the services run for ``--method skild``: the dynamics-learner trains CDL's factored model
 (at CDL's default settings; weights named ``skild``), and the graph-evaluator scores its local graphs
-(pCMI) live against the household tasks' true local graphs. SkiLD has no global graph (chapter 6
-defines only local ones), so runs show local-graph reports and no graph report, as ELDEN's.
+(pCMI) live against the household tasks' true local graphs and sends the induced graphs of every
+batch (``InducedGraphs``). SkiLD has no global graph (chapter 6 defines only local ones), so runs
+show local-graph reports and no graph report, as ELDEN's.
 
-The skill discovery itself (graph history, graph selector, skill policies, eqs. 6.1-6.2) is
-:mod:`causal.skild`, :mod:`causal.skild_agent` and :mod:`causal.skild_pretrain`, run in one process
-by ``python -m benchmarks.skild_coverage``; it is not yet driven by the policy-learner (see
-docs/methods/skild.md).
+The skill discovery itself (graph history, graph selector, skill policies, eqs. 6.1-6.2;
+:mod:`causal.skild`, :mod:`causal.skild_agent`) runs in the policy-learner's SkiLD mode, then a task
+policy over the frozen skills; the env-workers act with them (:mod:`causal.skild_policy`; see
+docs/methods/skild.md, "What runs where"). The benchmarks run the same cores in one process.
 """
 from __future__ import annotations
 
