@@ -71,12 +71,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proto.messages import EDGE_RULES
-
-BIASES = ("fixed", "permuted", "pooled", "global")
-"""How the fdr rule allows for the learned model's bias: ``fixed`` tests ``CMI > min_cmi``;
-``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input; ``pooled``
-tests ``CMI >`` the largest null of the entry's output, ``global`` the largest of the whole graph."""
+from proto.messages import BIASES, EDGE_RULES
 
 __all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "tested_entries", "undecided"]
 

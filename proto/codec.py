@@ -25,7 +25,7 @@ import msgpack
 import numpy as np
 
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
-from proto.messages import EDGE_RULES, SCHEMA_VERSION, Control, EnvSpec, FrameBatch, GraphReport, LocalGraphReport
+from proto.messages import BIASES, EDGE_RULES, SCHEMA_VERSION, Control, EnvSpec, FrameBatch, GraphReport, LocalGraphReport
 from proto.messages import ScoredBatch
 from proto.messages import ServiceStats, TransitionBatch, Weights
 from proto.messages import SKILL_PHASES, InducedGraphs, SkillBatch
@@ -340,6 +340,8 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "reward_scores": _optional(_F32_1D), "reward_parents": _optional(_PARENTS), "reward_threshold": _float,
         "true_reward_parents": _optional(_PARENTS), "cmi_stderr": _optional(_F32_2D),
         "undecided": _optional(_GRAPH), "edge_rule": _str, "fdr": _float, "min_cmi": _float,
+        "bias": _str, "cmi_null": _optional(_F32_2D), "reward_stderr": _optional(_F32_1D),
+        "reward_undecided": _optional(_PARENTS),
     },
     LocalGraphReport: {
         "kind": _str, "estimator": _str, "weights_version": _int, "env_steps": _int, "updates": _int,
@@ -499,6 +501,11 @@ def _check_edge_tests(m: GraphReport, shape: tuple[int, int]) -> None:
     ok = m.edge_rule == "fixed" or m.cmi_stderr is not None
     _require(ok, "inconsistent", "GraphReport: edge_rule fdr without cmi_stderr")
     _require(0.0 <= m.fdr < 1.0 and m.min_cmi >= 0.0, "bad_field", f"GraphReport: fdr {m.fdr}, min_cmi {m.min_cmi}")
+    _require(m.bias in BIASES, "bad_field", f"GraphReport.bias: {_short(m.bias)}")
+    ok = m.bias == "fixed" or (m.edge_rule == "fdr" and m.cmi_null is not None)
+    _require(ok, "inconsistent", f"GraphReport: bias {m.bias} without the fdr rule and cmi_null")
+    if m.cmi_null is not None:
+        _require(m.cmi_null.shape == shape, "inconsistent", f"GraphReport.cmi_null: {m.cmi_null.shape}, want {shape}")
 
 
 def _check_reward_graph(m: GraphReport, d: int) -> None:
@@ -511,6 +518,13 @@ def _check_reward_graph(m: GraphReport, d: int) -> None:
         _check_graph(m.reward_parents, (d + 1,), "GraphReport.reward_parents")
     if m.true_reward_parents is not None:
         _check_graph(m.true_reward_parents, (d + 1,), "GraphReport.true_reward_parents")
+    ok = (m.reward_stderr is None) == (m.reward_undecided is None) and (m.reward_stderr is None or m.reward_scores is not None)
+    _require(ok, "inconsistent", "GraphReport: reward_stderr and reward_undecided come together, with reward_scores")
+    if m.reward_stderr is not None:
+        got = m.reward_stderr.shape
+        _require(got == (d + 1,), "inconsistent", f"GraphReport.reward_stderr: {got}, want {(d + 1,)}")
+        _require(bool((m.reward_stderr >= 0).all()), "bad_array", "GraphReport.reward_stderr: negative")
+        _check_graph(m.reward_undecided, (d + 1,), "GraphReport.reward_undecided")
 
 
 def _check_local_report(m: LocalGraphReport) -> None:

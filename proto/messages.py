@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -25,6 +25,11 @@ SKILL_PHASES = ("pretrain", "task")
 """SkiLD's phases (ch. 6): reward-free skill pre-training, then task learning over the frozen skills."""
 EDGE_RULES = ("fixed", "fdr")
 """How a graph report decides its edges: CMI >= threshold, or tests at a false-discovery rate."""
+BIASES = ("fixed", "permuted", "pooled", "global")
+"""How the fdr rule allows for the learned model's bias: ``fixed`` tests ``CMI > min_cmi``;
+``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input; ``pooled``
+tests ``CMI >`` the largest null of the entry's output, ``global`` the largest of the whole graph
+(``causal.edge_tests``)."""
 
 
 @dataclass(frozen=True)
@@ -212,6 +217,16 @@ class GraphReport:
     at false-discovery rate ``fdr`` (Benjamini-Hochberg over the off-diagonal entries)"""
     fdr: float = 0.0
     min_cmi: float = 0.0
+    bias: str = "fixed"
+    """How the fdr rule allowed for the estimator's bias (:data:`BIASES`; schema version 8): ``fixed``,
+    the test of ``cmi > min_cmi``; otherwise of ``cmi`` above the permuted-input null"""
+    cmi_null: np.ndarray | None = None
+    """float32 [d_S, d_S + 1], nats: each entry's CMI with its input permuted across the held-out
+    samples (the estimated bias of a non-edge); with a ``bias`` other than fixed"""
+    reward_stderr: np.ndarray | None = None
+    """float32 [d_S + 1], >= 0: the reward scores' standard errors (CBM: delta method), when known"""
+    reward_undecided: np.ndarray | None = None
+    """uint8 [d_S + 1]: reward entries the data cannot yet decide, with ``reward_stderr``"""
 
 
 @dataclass(frozen=True)

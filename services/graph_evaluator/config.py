@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from proto.messages import EDGE_RULES
+from proto.messages import BIASES, EDGE_RULES
 from services.runtime.config import ServiceConfig, doc
 
 
@@ -20,6 +20,11 @@ class GraphEvaluatorConfig(ServiceConfig):
     fdr: float = doc(0.05, "false-discovery rate of the fdr edge rule")
     min_cmi: float = doc(5e-3, "smallest CMI (nats) the fdr rule counts as an effect: a learned model's CMI of a "
                                "non-edge is biased slightly above 0 (docs/deviations.md)")
+    bias: str = doc("fixed", "how the fdr rule allows for that bias: fixed (test CMI > min_cmi), permuted (test CMI > "
+                             "the entry's CMI with its input permuted across the held-out samples, estimated in the "
+                             "same pass; exact only for inputs independent of each other), pooled (test CMI > the "
+                             "largest such null of the entry's output) or global (> the largest of the graph); "
+                             "min_cmi then only marks undecided entries (causal.edge_tests)", choices=BIASES)
 
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "
                                 "eval_samples of them, so successive estimates see different episodes")

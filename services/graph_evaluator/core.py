@@ -16,7 +16,7 @@ from causal.abstraction import with_self_edges
 from causal.edge_tests import EdgeEstimate, decide
 from causal.factored import FactorLayout
 from causal.graph_metrics import score_graph
-from causal.method import EdgeEstimator, has_standard_errors, import_tensors, task_abstraction
+from causal.method import EdgeEstimator, RewardEdgeEstimator, has_standard_errors, import_tensors, task_abstraction
 from causal.methods import get_method, model_from_config_json
 from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
@@ -46,6 +46,10 @@ class GraphEvaluatorCore:
         self.method = get_method(cfg.method)
         if cfg.edge_rule == "fdr" and not has_standard_errors(self.method):
             raise ValueError(f"edge_rule fdr needs standard errors of the graph's scores; {cfg.method}'s have none")
+        if cfg.bias != "fixed" and not has_standard_errors(self.method):
+            raise ValueError(f"bias {cfg.bias} needs the permuted-input null of the graph's scores; {cfg.method}'s has none")
+        self.permute = torch.Generator().manual_seed(cfg.seed + 2) if cfg.bias != "fixed" else None
+        """Draws the permutation of each estimate's permuted-input null (``bias`` permuted or pooled)."""
         self.kind = self.method.name
         self.device = resolve_device(cfg.device, self.method.devices)
         self.constant_factors = constant_factor_indices(spec)
@@ -66,11 +70,16 @@ class GraphEvaluatorCore:
         self.stderr_ema: np.ndarray | None = None
         """Standard errors of ``cmi_ema`` (averaged alike: an upper bound, see :meth:`evaluate`), for an
         estimator that has them."""
+        self.null_ema: np.ndarray | None = None
+        self.excess_stderr_ema: np.ndarray | None = None
+        """The permuted-input null and the standard error of ``cmi - null``, averaged alike (``bias`` not fixed)."""
         self.threshold = float("nan")
         """Edge threshold of the loaded model's global-graph estimator (its own configuration)."""
         self.reward_ema: np.ndarray | None = None
         """Moving average of the reward graph's scores ``[d_S + 1]``, for a method with a reward graph."""
         self.reward_threshold = float("nan")
+        self.reward_stderr_ema: np.ndarray | None = None
+        """Standard errors of ``reward_ema`` (a reward estimator that has them: CBM's)."""
         self.history: list[dict[str, float]] = []
 
     def ingest(self, batch: TransitionBatch) -> int:
@@ -129,25 +138,34 @@ class GraphEvaluatorCore:
         assert self.local is not None and self.model is not None and self.weights is not None
         return self.local.evaluate(self.model, self.weights, every)
 
-    def edge_scores(self, state: torch.Tensor, action: torch.Tensor,
-                    next_state: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
+    def edge_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
         """The method's global edge scores (CDL: CMI in nats) of the current model on these transitions,
-        and their standard errors where the estimator gives them (None otherwise)."""
+        their standard errors where the estimator gives them, and the permuted-input null with the
+        standard error of ``cmi - null`` when ``bias`` asks for it (None otherwise)."""
         state, action, next_state = (t.to(self.device) for t in (state, action, next_state))
         estimator = self.method.global_graph
         if isinstance(estimator, EdgeEstimator):
-            estimate = estimator.estimate(self.model, state, action, next_state)
-            return estimate.cmi.astype(np.float32), estimate.stderr.astype(np.float32)
-        return np.asarray(estimator.scores(self.model, state, action, next_state), dtype=np.float32), None
+            estimate = estimator.estimate(self.model, state, action, next_state, permute=self.permute)
+            return tuple(None if x is None else x.astype(np.float32)  # type: ignore[return-value]
+                         for x in (estimate.cmi, estimate.stderr, estimate.null, estimate.excess_stderr))
+        return np.asarray(estimator.scores(self.model, state, action, next_state), dtype=np.float32), None, None, None
 
     def reward_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
-                      reward: torch.Tensor) -> np.ndarray | None:
-        """The method's reward-graph scores ``[d_S + 1]`` on these transitions (None without a reward graph)."""
+                      reward: torch.Tensor) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The method's reward-graph scores ``[d_S + 1]`` on these transitions and their standard errors
+        where the estimator gives them (None without a reward graph)."""
         if self.method.reward_graph is None:
-            return None
+            return None, None
         state, action, next_state, reward = (t.to(self.device) for t in (state, action, next_state, reward))
-        scores = self.method.reward_graph.scores(self.model, state, action, next_state, reward)
-        return np.asarray(scores, dtype=np.float32)
+        estimator = self.method.reward_graph
+        if isinstance(estimator, RewardEdgeEstimator):
+            estimate = estimator.estimate(self.model, state, action, next_state, reward)
+            return estimate.cmi.astype(np.float32), estimate.stderr.astype(np.float32)
+        return np.asarray(estimator.scores(self.model, state, action, next_state, reward), dtype=np.float32), None
+
+    SMOOTHED = ("cmi_ema", "stderr_ema", "null_ema", "excess_stderr_ema", "reward_ema", "reward_stderr_ema")
+    """The running estimates, in the order :meth:`edge_scores` and :meth:`reward_scores` return them."""
 
     def evaluate(self) -> GraphReport:
         """Edge scores for every edge (and the reward's, for a method with a reward graph) on held-out
@@ -162,13 +180,11 @@ class GraphEvaluatorCore:
         index = self.heldout.rng.choice(self.heldout.size, n, replace=False)
         s, a, nxt, r = (torch.from_numpy(x[: self.heldout.size][index]) for x in
                         (self.heldout.state, self.heldout.action, self.heldout.next_state, self.heldout.reward))
-        (cmi, stderr), rewards = self.edge_scores(s, a, nxt), self.reward_scores(s, a, nxt, r)
+        new = (*self.edge_scores(s, a, nxt), *self.reward_scores(s, a, nxt, r))
         alpha = self.previous_weight(self.weights.updates)
-        self.cmi_ema = cmi if self.cmi_ema is None else alpha * self.cmi_ema + (1 - alpha) * cmi
-        if stderr is not None:
-            self.stderr_ema = stderr if self.stderr_ema is None else alpha * self.stderr_ema + (1 - alpha) * stderr
-        if rewards is not None:
-            self.reward_ema = rewards if self.reward_ema is None else alpha * self.reward_ema + (1 - alpha) * rewards
+        for name, value in zip(self.SMOOTHED, new):
+            old = getattr(self, name)
+            setattr(self, name, value if old is None or value is None else alpha * old + (1 - alpha) * value)
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(n)
 
@@ -178,8 +194,10 @@ class GraphEvaluatorCore:
         draws of ``eval_samples``, is replaced by it)."""
         assert self.model is not None and self.weights is not None
         transitions = self.heldout.all()
-        self.cmi_ema, self.stderr_ema = self.edge_scores(*transitions)
-        self.reward_ema = self.reward_scores(*transitions, torch.from_numpy(self.heldout.reward[: self.heldout.size]))
+        new = (*self.edge_scores(*transitions),
+               *self.reward_scores(*transitions, torch.from_numpy(self.heldout.reward[: self.heldout.size])))
+        for name, value in zip(self.SMOOTHED, new):
+            setattr(self, name, value)
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         return self.report(self.heldout.size)
 
@@ -200,7 +218,17 @@ class GraphEvaluatorCore:
         if stderr is None:
             return cmi >= self.threshold, None
         cfg = self.cfg
-        return decide(EdgeEstimate(cmi, stderr, 0), cfg.edge_rule, self.threshold, cfg.fdr, cfg.min_cmi)
+        estimate = EdgeEstimate(cmi, stderr, 0, self.null_ema, self.excess_stderr_ema)
+        return decide(estimate, cfg.edge_rule, self.threshold, cfg.fdr, cfg.min_cmi, bias=cfg.bias)
+
+    def decide_reward(self, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The reward's parents ``[d_S + 1]`` under the configured rule (fdr: at the same level and
+        ``min_cmi``, against a fixed bias: the reward has no permuted null), and its undecided entries."""
+        if self.reward_stderr_ema is None:
+            return scores >= self.reward_threshold, None
+        cfg = self.cfg
+        return decide(EdgeEstimate(scores, self.reward_stderr_ema, 0), cfg.edge_rule, self.reward_threshold,
+                      cfg.fdr, cfg.min_cmi)
 
     def report(self, num_heldout: int) -> GraphReport:
         cmi, threshold = self.cmi_ema.astype(np.float32), self.threshold
@@ -208,7 +236,8 @@ class GraphEvaluatorCore:
         edges, undecided = self.decide(cmi, stderr)
         adjacency = with_self_edges(edges).astype(np.uint8)
         rewards = None if self.reward_ema is None else self.reward_ema.astype(np.float32)
-        parents = None if rewards is None else (rewards >= self.reward_threshold).astype(np.uint8)
+        parents, reward_undecided = (None, None) if rewards is None else self.decide_reward(rewards)
+        parents = None if parents is None else parents.astype(np.uint8)
         abstraction = task_abstraction(self.method, adjacency, parents)
         truth = self.spec.global_graph
         metrics = (score_graph(cmi, truth, threshold, self.constant_factors, predicted=edges)
@@ -218,6 +247,8 @@ class GraphEvaluatorCore:
             metrics.update(abstraction_metrics(adjacency, abstraction, truth, self.spec.reward_parents))
         w = self.weights
         tested = {} if undecided is None else {"undecided_entries": int(undecided.sum())}
+        if reward_undecided is not None:
+            tested["reward_undecided_entries"] = int(reward_undecided.sum())
         self.history.append({"env_steps": w.env_steps, "updates": w.updates, "time": time.time(), **metrics, **tested})
         rule = self.cfg.edge_rule if stderr is not None else "fixed"
         return GraphReport(kind=self.kind, weights_version=w.version, env_steps=w.env_steps, updates=w.updates,
@@ -231,7 +262,10 @@ class GraphEvaluatorCore:
                            true_reward_parents=self.spec.reward_parents if rewards is not None else None,
                            cmi_stderr=stderr, undecided=None if undecided is None else undecided.astype(np.uint8),
                            edge_rule=rule, fdr=self.cfg.fdr if rule == "fdr" else 0.0,
-                           min_cmi=self.cfg.min_cmi if rule == "fdr" else 0.0)
+                           min_cmi=self.cfg.min_cmi if rule == "fdr" else 0.0,
+                           bias=self.cfg.bias if rule == "fdr" else "fixed", cmi_null=self.null_ema,
+                           reward_stderr=self.reward_stderr_ema,
+                           reward_undecided=None if reward_undecided is None else reward_undecided.astype(np.uint8))
 
     def fingerprint(self) -> str:
         """What a checkpoint must match to be resumed: the environment (held-out data is env-specific);
@@ -245,10 +279,9 @@ class GraphEvaluatorCore:
                  "evaluated_version": self.evaluated_version, "evaluated_updates": self.evaluated_updates}
         if self.cmi_ema is not None:
             state["cmi_ema"] = torch.from_numpy(self.cmi_ema)
-        if self.stderr_ema is not None:
-            state["stderr_ema"] = torch.from_numpy(self.stderr_ema)
-        if self.reward_ema is not None:
-            state["reward_ema"] = torch.from_numpy(self.reward_ema)
+        for name in self.SMOOTHED[1:]:
+            if getattr(self, name) is not None:
+                state[name] = torch.from_numpy(getattr(self, name))
         if self.local is not None:
             state["local"] = self.local.state_dict()
         save_checkpoint(state, path)
@@ -263,10 +296,9 @@ class GraphEvaluatorCore:
         self.evaluated_updates = int(saved.get("evaluated_updates", 0))
         if "cmi_ema" in saved:
             self.cmi_ema = saved["cmi_ema"].numpy()
-        if "stderr_ema" in saved:
-            self.stderr_ema = saved["stderr_ema"].numpy()
-        if "reward_ema" in saved:
-            self.reward_ema = saved["reward_ema"].numpy()
+        for name in self.SMOOTHED[1:]:
+            if name in saved:
+                setattr(self, name, saved[name].numpy())
         if self.local is not None and "local" in saved:
             self.local.load_state_dict(saved["local"])
         return True

@@ -74,7 +74,9 @@ def edge_test_fields(report: GraphReport) -> dict[str, Any]:
     and, where the estimator has them, each entry's standard error and which entries are undecided."""
     out: dict[str, Any] = {"edge_rule": report.edge_rule}
     if report.edge_rule == "fdr":
-        out.update(fdr=report.fdr, min_cmi=report.min_cmi)
+        out.update(fdr=report.fdr, min_cmi=report.min_cmi, bias=report.bias)
+    if report.cmi_null is not None:
+        out["cmi_null"] = [[float(f"{v:.3g}") for v in row] for row in report.cmi_null.astype(float)]
     if report.cmi_stderr is not None:
         out["cmi_stderr"] = [[float(f"{v:.3g}") for v in row] for row in report.cmi_stderr.astype(float)]
         out["undecided"] = report.undecided.astype(int).tolist()

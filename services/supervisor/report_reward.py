@@ -41,6 +41,9 @@ def reward_fields(report: GraphReport) -> dict[str, Any]:
         "true_parents": (None if report.true_reward_parents is None
                          else [c for c, p in zip(causes, report.true_reward_parents) if p]),
         **{k: float(m[f"reward_{k}"]) for k in REWARD_SCORES if f"reward_{k}" in m}}}
+    if report.reward_stderr is not None:  # CBM's reward CMI: delta-method standard errors (issue 22)
+        out["reward_graph"]["stderr"] = {c: float(f"{v:.3g}") for c, v in zip(causes, report.reward_stderr.astype(float))}
+        out["reward_graph"]["undecided"] = [c for c, u in zip(causes, report.reward_undecided) if u]
     out["task_abstraction"] = task_abstraction_fields(report)
     if any(is_distractor(n) for n in names) and report.true_graph is not None:
         out["distractors"] = distractor_scores(report.adjacency, report.true_graph, report.factor_names)

@@ -1,0 +1,109 @@
+"""The evaluator's estimated bias (issue 22): the fdr rule tested against each entry's permuted-input
+null (``--evaluator-bias permuted|pooled``), and CBM's dynamics and reward graphs with standard errors,
+FDR decisions and undecided entries, on the wire and in the summary."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from causal.cbm import CBMTrainer
+from causal.cbm_config import CBMConfig
+from causal.cdl import CDLConfig, CDLModel, model_config_json
+from causal.edge_tests import decide
+from causal.factored import FactorLayout
+from causal.method import export_tensors
+from causal.methods.cdl import CMIGraph
+from proto.codec import ProtocolError, decode, encode
+from proto.messages import GraphReport, Weights
+from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.graph_evaluator.core import GraphEvaluatorCore
+from services.runtime.config import parse_config
+from services.supervisor.config import RunConfig
+from services.supervisor.report import graph_fields
+from tests.services.test_edge_rule import chain_spec
+
+torch.set_num_threads(1)
+
+
+def filled_core(cfg: GraphEvaluatorConfig, n: int = 96) -> GraphEvaluatorCore:
+    spec = chain_spec()
+    core = GraphEvaluatorCore(cfg, spec)
+    rng = np.random.default_rng(0)
+    state = rng.integers(0, 5, (n, spec.state_dim)).astype(np.float32)
+    action = rng.integers(0, 15, (n, 1)).astype(np.float32)
+    core.heldout.add(state, action, np.roll(state, 1, axis=0), rng.normal(size=n).astype(np.float32))
+    return core
+
+
+@pytest.mark.parametrize("bias", ["permuted", "pooled"])
+def test_the_fdr_rule_against_the_permuted_null_reaches_the_report(bias: str, tmp_path) -> None:
+    cfg = GraphEvaluatorConfig(edge_rule="fdr", bias=bias, min_heldout=64, seed=3)
+    core = filled_core(cfg)
+    layout = FactorLayout.from_spec(core.spec)
+    torch.manual_seed(0)
+    model = CDLModel(layout, CDLConfig())
+    core.load_weights(Weights(model="cdl", version=1, config_json=model_config_json(layout, CDLConfig()),
+                              env_steps=10, updates=100, tensors=export_tensors(model)))
+    report = decode(encode(core.evaluate_final()), GraphReport)
+    held = core.heldout.all()[:3]
+    estimate = CMIGraph().estimate(core.model, *held, permute=torch.Generator().manual_seed(cfg.seed + 2))
+    edges, undecided = decide(estimate, "fdr", report.threshold, cfg.fdr, cfg.min_cmi, bias=bias)
+    off = ~np.eye(*edges.shape, dtype=bool)
+    assert report.bias == bias and report.edge_rule == "fdr"
+    np.testing.assert_allclose(report.cmi_null, estimate.null, rtol=1e-4, atol=1e-6)
+    assert np.array_equal(report.adjacency.astype(bool) & off, edges)
+    assert np.array_equal(report.undecided.astype(bool), undecided)
+    fields = graph_fields(report)
+    assert fields["bias"] == bias and np.shape(fields["cmi_null"]) == edges.shape
+    core.checkpoint(tmp_path / "ev.pt")
+    again = GraphEvaluatorCore(cfg, core.spec)
+    assert again.restore(tmp_path / "ev.pt") and np.array_equal(again.null_ema, core.null_ema)
+
+
+def test_a_report_with_an_estimated_bias_needs_its_null() -> None:
+    core = filled_core(GraphEvaluatorConfig(edge_rule="fdr", bias="permuted", min_heldout=64))
+    layout = FactorLayout.from_spec(core.spec)
+    core.load_weights(Weights(model="cdl", version=1, config_json=model_config_json(layout, CDLConfig()),
+                              env_steps=10, updates=100, tensors=export_tensors(CDLModel(layout, CDLConfig()))))
+    report = core.evaluate_final()
+    with pytest.raises(ProtocolError, match="cmi_null"):
+        decode(encode(GraphReport(**{**report.__dict__, "cmi_null": None})), GraphReport)
+    with pytest.raises(ProtocolError, match="bias"):
+        decode(encode(GraphReport(**{**report.__dict__, "bias": "guessed"})), GraphReport)
+    cfg = parse_config(RunConfig, ["--evaluator-edge-rule", "fdr", "--evaluator-bias", "pooled"], environ={})
+    assert cfg.evaluator.bias == "pooled" and RunConfig().evaluator.bias == "fixed"
+    with pytest.raises(SystemExit):
+        parse_config(RunConfig, ["--evaluator-bias", "guessed"], environ={})
+
+
+def cbm_core(cfg: GraphEvaluatorConfig) -> GraphEvaluatorCore:
+    core = filled_core(cfg)
+    trainer = CBMTrainer(FactorLayout.from_spec(core.spec),
+                         CBMConfig(eval_negatives=64, feature_hidden=8, feature_dim=8, predictor_hidden=8, embed_dim=8,
+                                   candidate_hidden=8, reward_hidden=8), seed=0)
+    core.load_weights(Weights(model="cbm", version=1, config_json=trainer.config_json(), env_steps=10, updates=5,
+                              tensors=export_tensors(trainer.model)))
+    return core
+
+
+def test_cbm_reports_standard_errors_fdr_decisions_and_undecided_entries_of_both_graphs() -> None:
+    cfg = GraphEvaluatorConfig(method="cbm", edge_rule="fdr", min_heldout=64, min_cmi=5e-3)
+    core = cbm_core(cfg)
+    report = decode(encode(core.evaluate_final()), GraphReport)
+    d = len(report.factor_names)
+    assert report.edge_rule == "fdr" and report.cmi_stderr.shape == (d, d + 1) and report.undecided is not None
+    assert report.reward_stderr.shape == (d + 1,) and (report.reward_stderr > 0).any()
+    parents, open_ = core.decide_reward(report.reward_scores)
+    assert np.array_equal(report.reward_parents.astype(bool), parents)
+    assert np.array_equal(report.reward_undecided.astype(bool), open_)
+    fields = graph_fields(report)
+    assert set(fields["reward_graph"]["stderr"]) == set(report.factor_names) | {"action"}
+    assert "undecided" in fields["reward_graph"] and "cmi_stderr" in fields
+    assert core.history[-1]["reward_undecided_entries"] == int(open_.sum())
+
+
+def test_cbm_implicit_dynamics_refuse_the_permuted_null() -> None:
+    core = cbm_core(GraphEvaluatorConfig(method="cbm", edge_rule="fdr", bias="permuted", min_heldout=64))
+    with pytest.raises(ValueError, match="no permuted-input null"):
+        core.evaluate_final()
