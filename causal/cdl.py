@@ -418,12 +418,9 @@ class CDLModel(nn.Module):
 
         Each input's feature depends on that input alone, so swapping it is swapping its feature row;
         the heads run only where the swap changes the aggregate (the input won some feature, or its
-        swapped feature does). What it is for: the permuted-input null of
-        :mod:`causal.edge_tests`."""
-        feats = self.features(state, action)
-        first, runner_up, is_max = max_and_runner_up(feats)
-        swapped = self.features(other_state, other_action)
-        permuted = torch.maximum(torch.where(is_max, runner_up, first), swapped)
+        swapped feature does). For the permuted-input null of :mod:`causal.edge_tests`."""
+        first, runner_up, is_max = max_and_runner_up(self.features(state, action))
+        permuted = torch.maximum(torch.where(is_max, runner_up, first), self.features(other_state, other_action))
         cat, delta = self._targets(state, next_state)
         full_nll = self._nll_of(self.predict(first), cat, delta)[:, 0]
         gain = full_nll.new_zeros(is_max.shape[:3])
@@ -436,9 +433,8 @@ class CDLModel(nn.Module):
 
     def _nll_of_rows(self, out_j: torch.Tensor, sample: torch.Tensor, aggregated_rows: torch.Tensor,
                      cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
-        """NLL ``[N]`` of output ``out_j[n]``'s head on the aggregate ``aggregated_rows[n]`` against sample
-        ``sample[n]``'s target; ``out_j`` sorted (as ``nonzero`` gives it). The rows are packed per output,
-        so the heads run on at most max-rows-per-output aggregates each."""
+        """NLL ``[N]`` of output ``out_j[n]``'s head on ``aggregated_rows[n]`` against sample ``sample[n]``'s
+        target; ``out_j`` sorted (as ``nonzero`` gives it), rows packed per output for the heads."""
         counts = torch.bincount(out_j, minlength=self.num_outputs)
         row = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
         rows = int(counts.max())
