@@ -321,3 +321,27 @@ def test_undecided_entries_are_outlined_and_hover_shows_the_interval(stack) -> N
         assert low == pytest.approx(cmi - 1.96 * 0.002, rel=5e-3) and high == pytest.approx(cmi + 1.96 * 0.002, rel=5e-3)
         assert "crosses the boundary" in tip and "at FDR 0.05" in tip
         assert browser.exceptions == []
+
+
+def test_a_flam_run_shows_its_per_slot_latent_actions(stack) -> None:
+    publisher, latest, base = stack
+    latest.set(encode(make_report(3, version=2, errors=2)))  # RUN: CDL, no latent actions
+    live = {"live_psnr": 24.5, "live_dci_d": 0.12, "live_dci_c": 0.25, "live_dci_i": 0.5,
+            **{f"live_slot{k}_kl": kl for k, kl in enumerate((12.0, 3.0, 6.0, 0.5, 24.0))}}
+    beat = make_stats("dynamics-learner", "0", updates=1_234.0, env_steps=40_000.0, **live)
+    publisher.publish(topics.stats("flam-demo", "dynamics-learner", "0"), encode(beat))
+    wait_for(lambda: fetch_json(f"{base}/api/runs/{RUN}")["graph"], 10, "the CDL report")
+    with Browser(width=1440, height=1000) as browser:
+        browser.navigate(f"{base}/?run=flam-demo")
+        browser.wait_for("!document.getElementById('latent-panel').hidden", 10, "the latent-action panel")
+        assert text(browser, "#latent-psnr") == "24.50" and text(browser, "#latent-dci-d") == "0.120"
+        assert text(browser, "#latent-dci-c") == "0.250" and text(browser, "#latent-dci-i") == "0.500"
+        assert "update 1,234" in text(browser, "#latent-sub")
+        rows = browser.evaluate("[...document.querySelectorAll('#latent-slots tr[data-slot]')].map(r => "
+                                "[r.dataset.slot, r.cells[1].textContent, r.querySelector('.latent-bar').style.width])")
+        assert rows == [["0", "12.0", "50%"], ["1", "3.00", "12.5%"], ["2", "6.00", "25%"], ["3", "0.500", "2.1%"],
+                        ["4", "24.0", "100%"]]
+        select_run(browser, RUN)
+        browser.wait_for("document.body.dataset.weightsVersion === '2'", 10, "the CDL run")
+        assert not visible(browser, "latent-panel")
+        assert browser.exceptions == []
