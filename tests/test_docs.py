@@ -174,9 +174,9 @@ def check_benchmark(module: str, args: list[str]) -> None:
     spec = importlib.util.find_spec(module)
     if spec is None or spec.origin is None:
         raise CommandError(f"python -m {module}: no such module")
-    if not re.search(r"parse_(known_)?args\(", Path(spec.origin).read_text()):
+    if not re.search(r"parse_(known_)?args\(|table_main\(", Path(spec.origin).read_text()):
         if args:
-            raise CommandError(f"python -m {module}: takes no flags, the doc gives {args}")
+            raise CommandError(f"python -m {module}: takes no flags (no parse_args or table_main), the doc gives {args}")
         return
     saved = sys.argv
     sys.argv = [spec.origin, *args]

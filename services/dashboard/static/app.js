@@ -246,7 +246,6 @@ function renderCoverage(coverage) {
   $('coverage-table').replaceChildren(head, ...body);
 }
 
-
 function connect() {
   if (view.source) view.source.close();
   clearTimeout(view.retry);
