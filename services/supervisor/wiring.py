@@ -62,7 +62,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
     if cfg.target_f1 and method.global_graph is None:
         raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
     _check_edge_tests(cfg, method)
-    _check_frames(cfg)
+    _check_frames(cfg, method)
     if cfg.target_f1 and not entry.has_global_truth:
         raise ValueError(f"environment {cfg.env!r} has no true global graph to score --target-metric against")
     run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
@@ -80,11 +80,15 @@ def _entry(name: str) -> EnvEntry:
         raise ValueError(exc.args[0]) from None
 
 
-def _check_frames(cfg: RunConfig) -> None:
+def _check_frames(cfg: RunConfig, method: Method) -> None:
     """``--worker-publish-frames`` needs an env that renders frames (``info["frame"]``) with its masks when
-    the extractor's mask prior uses them."""
+    the extractor's mask prior uses them, and a method that learns over factors: a pixel method (Dyn-O,
+    FLAM) draws its own frames from the states, which a slot stream no longer carries."""
     if not cfg.worker.publish_frames:
         return
+    if method.slots is not None or method.latent_actions is not None:
+        raise ValueError(f"--worker-publish-frames: method {cfg.method!r} learns from frames itself; the "
+                         f"factor-extractor's slot transitions are for a method over factors (cdl, cbm, elden, ...)")
     info = make_env(cfg.env, **env_kwargs(cfg)).reset(seed=cfg.seed)[1]
     if not has_frames(info):
         raise ValueError(f"--worker-publish-frames: {cfg.env} renders no frames (chemical-pixels does)")

@@ -40,6 +40,8 @@ def test_wiring_starts_an_extractor_with_frames_only(tmp_path) -> None:
     assert "factor-extractor" not in learning_services(plain)
     with pytest.raises(ValueError, match="renders no frames"):
         resolve(_cfg(tmp_path, env="chemical"))
+    with pytest.raises(ValueError, match="method 'dyno' learns from frames itself"):
+        resolve(_cfg(tmp_path, method="dyno"))
 
 
 def test_cdl_learns_over_slots_from_frames_in_process(tmp_path) -> None:
