@@ -30,7 +30,8 @@ from proto.messages import ScoredBatch
 from proto.messages import ServiceStats, TransitionBatch, Weights
 from proto.messages import SKILL_PHASES, InducedGraphs, SkillBatch
 
-Message = EnvSpec | TransitionBatch | FrameBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport | Control | ServiceStats
+Message = (EnvSpec | TransitionBatch | FrameBatch | ScoredBatch | Weights | GraphReport | LocalGraphReport
+           | SkillBatch | InducedGraphs | Control | ServiceStats)
 M = TypeVar("M")
 
 # Bounds checked before (payload, strings, containers) or while (arrays) building objects.
