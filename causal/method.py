@@ -96,6 +96,16 @@ def has_standard_errors(method: "Method") -> bool:
     return isinstance(method.global_graph, EdgeEstimator)
 
 
+def permuted_null_refusal(method: "Method", cfg: Any) -> str | None:
+    """Why ``method`` with its settings ``cfg`` has no permuted-input null (the evaluator's ``bias``
+    other than fixed), or None when it has one. Without standard errors there is none; an estimator
+    whose null depends on the settings says so with a ``permuted_null_refusal(cfg)`` method."""
+    if not has_standard_errors(method):
+        return f"method {method.name!r} has no standard errors, so no permuted-input null"
+    check = getattr(method.global_graph, "permuted_null_refusal", None)
+    return check(cfg) if check is not None else None
+
+
 class LocalGraphEstimator(Protocol):
     """Per-transition edge scores: the local dependency graph of each transition (chapters 5-6)."""
 

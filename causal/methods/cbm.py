@@ -21,6 +21,8 @@ from causal.methods.cdl import CMIGraph
 from causal.planning import cdl_rollout_step
 from causal.rl import abstraction_input_mask
 
+NO_IMPLICIT_NULL = "CBM's implicit dynamics have no permuted-input null: use --evaluator-bias fixed"
+
 
 class DynamicsCMI:
     """Global graph: CMI of every (next factor, input) pair (eq. 4.3 implicit, eq. 3.2 explicit)."""
@@ -29,6 +31,10 @@ class DynamicsCMI:
 
     def __init__(self, seed: int = 0) -> None:
         self.generator = torch.Generator().manual_seed(seed)
+
+    def permuted_null_refusal(self, cfg: CBMConfig) -> str | None:
+        """Why a run of ``cfg`` cannot have the permuted-input null (implicit dynamics), or None."""
+        return NO_IMPLICIT_NULL if cfg.dynamics == "implicit" else None
 
     def scores(self, model: CBMModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> np.ndarray:
         return model.dynamics_cmi(state, action, next_state, self.generator).numpy()
@@ -46,7 +52,7 @@ class DynamicsCMI:
         if not model.implicit:
             return CMIGraph().estimate(model.dynamics, state, action, next_state, permute)
         if permute is not None:
-            raise ValueError("CBM's implicit dynamics have no permuted-input null: use --evaluator-bias fixed")
+            raise ValueError(NO_IMPLICIT_NULL)
         limit = model.cfg.cmi_samples
         if state.shape[0] > limit:
             index = torch.randperm(state.shape[0], generator=self.generator)[:limit]

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from causal.intrinsic import make_reward
-from causal.method import Method, has_standard_errors
+from causal.method import Method, has_standard_errors, permuted_null_refusal
 from causal.methods import get_method
 from envs.registry import EnvEntry, check_options, env_entry, make_env
 from proto.messages import EnvSpec
@@ -104,6 +104,10 @@ def _check_edge_tests(cfg: RunConfig, method: Method) -> None:
         what = "--evaluator-edge-rule fdr" if cfg.evaluator.edge_rule == "fdr" else "--stable-reports/--stable-seconds"
         raise ValueError(f"{what} needs a global graph with standard errors (to test edges, to know none is "
                          f"undecided); method {cfg.method!r} has none")
+    if cfg.evaluator.bias != "fixed":
+        refusal = permuted_null_refusal(method, getattr(cfg.models, method.name, None))
+        if refusal:
+            raise ValueError(f"--evaluator-bias {cfg.evaluator.bias}: {refusal}")
 
 
 def skill_discovery(cfg: RunConfig) -> bool:

@@ -107,3 +107,18 @@ def test_cbm_implicit_dynamics_refuse_the_permuted_null() -> None:
     core = cbm_core(GraphEvaluatorConfig(method="cbm", edge_rule="fdr", bias="permuted", min_heldout=64))
     with pytest.raises(ValueError, match="no permuted-input null"):
         core.evaluate_final()
+
+
+def test_a_run_asking_for_a_null_its_method_lacks_is_refused_before_it_starts() -> None:
+    from services.runtime.config import build_config
+    from services.supervisor.wiring import resolve
+
+    for bias in ("permuted", "pooled", "global"):
+        with pytest.raises(ValueError, match=f"--evaluator-bias {bias}: CBM's implicit dynamics have no permuted-input null"):
+            resolve(build_config(RunConfig, method="cbm", env="chemical-distractors", evaluator_bias=bias))
+        with pytest.raises(ValueError, match="'modular' has no standard errors"):
+            resolve(build_config(RunConfig, method="modular", evaluator_bias=bias))
+    explicit = resolve(build_config(RunConfig, method="cbm", env="chemical-distractors", evaluator_bias="permuted",
+                                    cbm_dynamics="explicit", router_port=1))
+    assert explicit.evaluator.bias == "permuted"
+    assert resolve(build_config(RunConfig, evaluator_bias="global", router_port=1)).evaluator.bias == "global"
