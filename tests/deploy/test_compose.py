@@ -43,10 +43,23 @@ def compose() -> dict[str, Any]:
     return load_yaml(result.stdout)
 
 
+LOCAL_STACK_ONLY = {"factor-extractor"}
+"""Services the compose stack does not run, each said so in deploy/README.md: the factor-extractor
+serves frames runs (``--worker-publish-frames true``), which only the local stack starts."""
+
+
 def _service_modules() -> dict[str, str]:
-    """Compose service name -> module, for every ``services/<pkg>/__main__.py``."""
+    """Compose service name -> module, for every ``services/<pkg>/__main__.py`` the compose stack runs."""
     mains = sorted((REPO / "services").glob("*/__main__.py"))
-    return {main.parent.name.replace("_", "-"): f"services.{main.parent.name}" for main in mains}
+    names = {main.parent.name.replace("_", "-"): f"services.{main.parent.name}" for main in mains}
+    return {name: module for name, module in names.items() if name not in LOCAL_STACK_ONLY}
+
+
+def test_a_service_left_out_of_compose_is_said_to_be_in_the_deploy_readme() -> None:
+    text = (REPO / "deploy" / "README.md").read_text()
+    for name in LOCAL_STACK_ONLY:
+        assert (REPO / "services" / name.replace("-", "_") / "__main__.py").is_file(), name
+        assert f"`{name}` is not in the compose stack" in text, name
 
 
 def _causeway_services(compose: dict[str, Any]) -> dict[str, dict[str, Any]]:

@@ -41,6 +41,17 @@ LEARNER_METRICS = {
     "causeway_update_seconds", "causeway_checkpoints_total",
     "causeway_dynamics_updates_per_env_step", "causeway_dynamics_ratio_wait_seconds_total",
     "causeway_dynamics_learning_rate", "causeway_dynamics_nonfinite_updates_total",
+    "causeway_dynamics_live_score",
+}
+SKILD_LEARNER_METRICS = {  # the policy-learner of a --method skild run
+    "causeway_skild_updates_total", "causeway_skild_env_steps_total", "causeway_skild_dropped_total",
+    "causeway_skild_task_phase", "causeway_skild_targets", "causeway_policy_version",
+    "causeway_policy_weights_bytes_published_total",
+}
+EXTRACTOR_METRICS = {  # the factor-extractor of a --worker-publish-frames run
+    "causeway_slot_updates_total", "causeway_slot_loss", "causeway_slots_frozen_ratio", "causeway_frames_received_total",
+    "causeway_slot_transitions_published_total", "causeway_slot_transition_bytes_published_total",
+    "causeway_encode_seconds", "causeway_checkpoints_total",
 }
 EVALUATOR_METRICS = {
     "causeway_graph_accuracy_ratio", "causeway_graph_precision_ratio", "causeway_graph_recall_ratio",
@@ -55,12 +66,13 @@ EVALUATOR_METRICS = {
     "causeway_local_graph_f1_ratio", "causeway_local_graph_positive_rate_ratio", "causeway_local_graph_reports_total",
     "causeway_local_graph_heldout_transitions", "causeway_local_graph_eval_seconds",
     "causeway_graph_undecided_entries",
+    "causeway_induced_graph_batches_total", "causeway_induced_graph_batches_skipped_total",
 }
 HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds",
               "causeway_local_graph_eval_seconds",
-              "causeway_policy_lag_versions", "causeway_policy_update_seconds"}
+              "causeway_policy_lag_versions", "causeway_policy_update_seconds", "causeway_encode_seconds"}
 KNOWN_METRICS = (COMMON_METRICS | ENV_WORKER_METRICS | FOLLOWER_METRICS | LEARNER_METRICS | EVALUATOR_METRICS
-                 | POLICY_LEARNER_METRICS | {"up"})
+                 | POLICY_LEARNER_METRICS | SKILD_LEARNER_METRICS | EXTRACTOR_METRICS | {"up"})
 
 # PromQL pieces that are not metric names: strings, label matchers, ranges, grouping clauses.
 _NOT_NAMES = re.compile(r'"(?:[^"\\]|\\.)*"|\{[^}]*\}|\[[^\]]*\]'
@@ -213,7 +225,7 @@ def _follower_registry() -> CollectorRegistry:
 
     common = ServiceMetrics("env-worker", "0")
     shell = SimpleNamespace(metrics=common, inbox=lambda *a, **k: None, subscribe=lambda *a: None)
-    follower = _PolicyFollower(shell, None, SimpleNamespace(run_id="r"))
+    follower = _PolicyFollower(shell, None, SimpleNamespace(run_id="r", skild=False))
     follower.in_use.set(3)
     return common.registry
 
@@ -229,6 +241,26 @@ def _policy_learner_registry() -> CollectorRegistry:
     return common.registry
 
 
+def _skild_learner_registry() -> CollectorRegistry:
+    from services.policy_learner.service import _SkildMetrics
+
+    common = ServiceMetrics("policy-learner", "0")
+    metrics = _SkildMetrics(SimpleNamespace(metrics=common))
+    metrics.phase.set(1)
+    metrics.targets.set(12)
+    return common.registry
+
+
+def _extractor_registry() -> CollectorRegistry:
+    from services.factor_extractor.service import _Metrics
+
+    common = ServiceMetrics("factor-extractor", "0")
+    metrics = _Metrics(SimpleNamespace(metrics=common))
+    metrics.loss.labels(term="reconstruction").set(0.02)
+    metrics.encode_seconds.observe(0.03)
+    return common.registry
+
+
 def _families(registry: CollectorRegistry) -> set[str]:
     """Metric names as stored by Prometheus: counters get ``_total``; ``_created`` series skipped."""
     return {family.name + ("_total" if family.type == "counter" else "") for family in registry.collect()}
@@ -240,12 +272,15 @@ def test_known_metric_lists_match_the_services_registries() -> None:
     assert _families(_env_worker_registry()) == COMMON_METRICS | ENV_WORKER_METRICS
     assert _families(_follower_registry()) == COMMON_METRICS | FOLLOWER_METRICS
     assert _families(_policy_learner_registry()) == COMMON_METRICS | POLICY_LEARNER_METRICS
+    assert _families(_skild_learner_registry()) == COMMON_METRICS | SKILD_LEARNER_METRICS
+    assert _families(_extractor_registry()) == COMMON_METRICS | EXTRACTOR_METRICS
 
 
 @integration
 @pytest.mark.parametrize("registry", [_env_worker_registry, _learner_registry, _evaluator_registry,
-                                      _policy_learner_registry],
-                         ids=["env-worker", "dynamics-learner", "graph-evaluator", "policy-learner"])
+                                      _policy_learner_registry, _skild_learner_registry, _extractor_registry],
+                         ids=["env-worker", "dynamics-learner", "graph-evaluator", "policy-learner",
+                              "policy-learner-skild", "factor-extractor"])
 def test_promtool_accepts_the_metrics_exposition(registry) -> None:
     result = _promtool("check", "metrics", stdin=generate_latest(registry()).decode())
     report = result.stdout + result.stderr
