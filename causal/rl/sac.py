@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -80,7 +81,7 @@ class TwinQ(nn.Module):
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
 
 
-class SoftActorCritic:
+class SoftActorCritic(ABC):
     """What both SACs share: twin critics with Polyak targets, automatic temperature, the update order
     (critics, then actor and temperature, then Polyak), device moves and checkpoints.
 
@@ -129,17 +130,17 @@ class SoftActorCritic:
         self.version += 1
         return stats
 
+    @abstractmethod
     def _soft_value(self, next_obs: torch.Tensor) -> torch.Tensor:
         """``V(s') = E_a' [min Q_target(s', a') - alpha log pi(a' | s')]``, ``[B]`` (under no_grad)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _taken_q(self, batch: ReplayBatch) -> tuple[torch.Tensor, torch.Tensor]:
         """Both critics' values of the batch's actions, ``[B]`` each."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _actor_loss(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The actor's loss and the per-sample entropy (estimate) the temperature is tuned on."""
-        raise NotImplementedError
 
     def _critic_step(self, batch: ReplayBatch) -> dict[str, float]:
         with torch.no_grad():
