@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from typing import Any, Callable
 
 from proto import topics
 from proto.messages import GraphReport, InducedGraphs, ScoredBatch, SkillBatch, TransitionBatch
@@ -51,36 +52,53 @@ def run(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> None:
     graphs = shell.inbox("graph", GraphReport, maxsize=4)
     shell.subscribe(topics.scored(cfg.run_id) if cfg.scored else topics.transitions(cfg.run_id), source)
     shell.subscribe(topics.graph(cfg.run_id, cfg.method), graphs)
-    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, MODEL))
+
+    def started(core: PolicyLearnerCore) -> None:
+        log.info("published policy v%d (%s, max lag %d)", core.version, cfg.algo, cfg.max_policy_lag)
+
+    def step(core: PolicyLearnerCore, publish: Callable[[], None]) -> bool:
+        _drain(core, source, graphs, shell, metrics)
+        if shell.paused or not core.ready:
+            time.sleep(0.01)
+        else:
+            t0 = time.perf_counter()
+            core.train_step()
+            metrics.update_seconds.observe(time.perf_counter() - t0)
+            metrics.updates.inc()
+            if core.publish_due:
+                publish()
+        return bool(cfg.max_updates and core.updates >= cfg.max_updates)
+
+    _serve(shell, cfg, MODEL, lambda spec: PolicyLearnerCore(cfg, spec), metrics, started, step)
+
+
+def _serve(shell: ServiceShell, cfg: PolicyLearnerConfig, model: str, make_core: Callable[[Any], Any],
+           metrics: _Metrics | _SkildMetrics, started: Callable[[Any], None],
+           step: Callable[[Any, Callable[[], None]], bool]) -> None:
+    """What both modes share: wait for the env spec, build and resume the core, publish its version,
+    then run ``step`` (True when the update budget is spent) with the control polling, checkpoints and
+    stats beats around it; the last checkpoint and beat on the way out, whatever ends the loop."""
+    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, model))
     spec = shell.wait_for_spec()
     if spec is None:
         latest.close()
         shell.close()
         return
-    core = PolicyLearnerCore(cfg, spec)
+    core = make_core(spec)
     ckpt = shell.resume(core)
     _publish(shell, core, latest, metrics)
-    log.info("published policy v%d (%s, max lag %d)", core.version, cfg.algo, cfg.max_policy_lag)
+    started(core)
     last_ckpt = time.monotonic()
     try:
         while not shell.stopping.is_set():
             shell.poll_control()
-            _drain(core, source, graphs, shell, metrics)
-            if shell.paused or not core.ready:
-                time.sleep(0.01)
-            else:
-                t0 = time.perf_counter()
-                core.train_step()
-                metrics.update_seconds.observe(time.perf_counter() - t0)
-                metrics.updates.inc()
-                if core.publish_due:
-                    _publish(shell, core, latest, metrics)
+            done = step(core, lambda: _publish(shell, core, latest, metrics))
             now = time.monotonic()
             if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
                 core.checkpoint(ckpt)
                 shell.checkpoint_requested, last_ckpt = False, now
             shell.beat(core.progress())
-            if cfg.max_updates and core.updates >= cfg.max_updates:
+            if done:
                 break
     finally:
         core.checkpoint(ckpt)
@@ -99,7 +117,7 @@ def _drain(core: PolicyLearnerCore, source: Inbox, graphs: Inbox, shell: Service
             metrics.observe(verdict)
 
 
-def _publish(shell: ServiceShell, core, latest, metrics: _Metrics) -> None:
+def _publish(shell: ServiceShell, core, latest, metrics: _Metrics | _SkildMetrics) -> None:
     metrics.weights_bytes.inc(shell.set_latest(latest, core.weights()))
     metrics.version.set(core.version)
 
@@ -144,46 +162,28 @@ def run_skild(cfg: PolicyLearnerConfig, transport: Transport | None = None) -> N
     shell.subscribe(topics.skills(cfg.run_id), source)
     if cfg.skild_graphs == "evaluator":
         shell.subscribe(topics.induced(cfg.run_id, cfg.method), source)
-    latest = shell.transport.serve_latest(topics.weights(cfg.run_id, SKILD_MODEL))
-    spec = shell.wait_for_spec()
-    if spec is None:
-        latest.close()
-        shell.close()
-        return
-    core = SkildLearnerCore(cfg, spec)
-    ckpt = shell.resume(core)
-    _publish(shell, core, latest, metrics)
-    log.info("published SkiLD policy v%d (%s phase, induced graphs: %s)", core.version, core.phase, cfg.skild_graphs)
-    last_ckpt = time.monotonic()
-    try:
-        while not shell.stopping.is_set():
-            shell.poll_control()
-            for _, message in source.drain():
-                reason = shell.guarded(core.ingest, message)
-                if reason:
-                    metrics.dropped.labels(reason=reason).inc()
-            if core.maybe_switch():
-                log.info("pre-training budget spent (%d env steps, %d targets): task learning, skills frozen",
-                         core.pretrain_steps, len(core.agent.history.targets))
-            if shell.paused or not core.ready:
-                time.sleep(0.01)
-            else:
-                core.train_step()
-            if core.publish_due:
-                _publish(shell, core, latest, metrics)
-            metrics.observe(core)
-            now = time.monotonic()
-            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
-                core.checkpoint(ckpt)
-                shell.checkpoint_requested, last_ckpt = False, now
-            shell.beat(core.progress())
-            if cfg.max_updates and core.updates + core.task_updates >= cfg.max_updates:
-                break
-    finally:
-        core.checkpoint(ckpt)
-        shell.beat(core.progress(), force=True)
-        latest.close()
-        shell.close()
+
+    def started(core: SkildLearnerCore) -> None:
+        log.info("published SkiLD policy v%d (%s phase, induced graphs: %s)", core.version, core.phase, cfg.skild_graphs)
+
+    def step(core: SkildLearnerCore, publish: Callable[[], None]) -> bool:
+        for _, message in source.drain():
+            reason = shell.guarded(core.ingest, message)
+            if reason:
+                metrics.dropped.labels(reason=reason).inc()
+        if core.maybe_switch():
+            log.info("pre-training budget spent (%d env steps, %d targets): task learning, skills frozen",
+                     core.pretrain_steps, len(core.agent.history.targets))
+        if shell.paused or not core.ready:
+            time.sleep(0.01)
+        else:
+            core.train_step()
+        if core.publish_due:
+            publish()
+        metrics.observe(core)
+        return bool(cfg.max_updates and core.updates + core.task_updates >= cfg.max_updates)
+
+    _serve(shell, cfg, SKILD_MODEL, lambda spec: SkildLearnerCore(cfg, spec), metrics, started, step)
 
 
 def main(argv: list[str] | None = None) -> None:
