@@ -77,6 +77,11 @@ class EnvSpec:
         return 1 if self.action_kind == "categorical" else self.action_size
 
 
+WORKER_LIFE_EPISODES = 10**9
+"""Episode ids of an env-worker's life k (after k restarts) start at k x this, so they stay unique per
+worker id across restarts and tell its lives apart (each life counts ``seq`` from 0)."""
+
+
 @dataclass(frozen=True)
 class TransitionBatch:
     """A batch of consecutive steps from one env-worker (never single steps)."""
@@ -98,7 +103,8 @@ class TransitionBatch:
     truncated: np.ndarray
     """bool [T]"""
     episode_id: np.ndarray
-    """int64 [T]; unique per worker"""
+    """int64 [T]; unique per worker; life k of a worker (its k-th restart) numbers its episodes from
+    k x :data:`WORKER_LIFE_EPISODES`, and its ``seq`` from 0 again"""
     step: np.ndarray
     """int32 [T]; index of the step within its episode"""
     local_graph: np.ndarray | None = None
@@ -109,6 +115,11 @@ class TransitionBatch:
 
     def __len__(self) -> int:
         return int(self.state.shape[0])
+
+    @property
+    def life(self) -> int:
+        """Which life of its worker sent this batch (0 for the first start, k after k restarts)."""
+        return int(self.episode_id.min()) // WORKER_LIFE_EPISODES if len(self) else 0
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from causal.replay import PrioritisedReplay, ReplayBuffer, heldout_mask
 from proto.fits import check_fits
 from proto.messages import EnvSpec, GraphReport, TransitionBatch, Weights
 from services.dynamics_learner.config import DynamicsLearnerConfig
+from services.dynamics_learner.gaps import SeqGaps
 from services.runtime.accept import VersionGate
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 from services.runtime.device import resolve_device
@@ -41,12 +42,18 @@ class DynamicsLearnerCore:
         self.resumed_at_update = 0
         self.resumed_env_steps = 0
         """Env steps the checkpoint held when this process resumed (what a restart kept of the data)."""
+        self.gaps = SeqGaps()
+        """Batches lost on the way here (``seq`` gaps per worker life); checkpointed with the replay, so
+        what a restart loses (taken after the checkpoint, or sent while down) counts as lost too."""
 
     def ingest(self, batch: TransitionBatch) -> int:
         """Keep the training episodes of ``batch``; returns how many steps were kept.
 
-        Raises ProtocolError('inconsistent') for a batch that does not fit the EnvSpec (nothing kept)."""
+        Raises ProtocolError('inconsistent') for a batch that does not fit the EnvSpec (nothing kept).
+        A batch already taken (same worker, life and ``seq``) is not kept again."""
         check_fits(self.spec, batch)
+        if self.gaps.observe(batch.worker_id, batch.life, batch.seq, len(batch)) == "duplicate":
+            return 0
         self.env_steps += len(batch)
         keep = ~heldout_mask(batch.worker_id, batch.episode_id, self.cfg.heldout_fraction)
         self.replay.add(batch.state[keep], batch.action[keep], batch.next_state[keep], batch.reward[keep])
@@ -88,7 +95,8 @@ class DynamicsLearnerCore:
         and other methods' reports are ignored, a version jump past the bound is refused (ProtocolError)."""
         n = self.spec.num_factors
         if (report.kind != self.method.name or report.weights_version < self.graph_version
-                or report.adjacency.shape != (n, n + 1) or not self.graph_versions.take("graph", report.weights_version)):
+                or report.adjacency.shape != (n, n + 1)
+                or not self.graph_versions.take("graph", report.weights_version, ceiling=self.version)):
             return False
         self.graph_version = report.weights_version
         self.trainer.set_parents(report.adjacency)
@@ -116,7 +124,7 @@ class DynamicsLearnerCore:
         save_checkpoint({"fingerprint": self.fingerprint(), "trainer": self.trainer.state_dict(),
                          "replay": self.replay.state_dict(),
                          "version": self.version, "env_steps": self.env_steps,
-                         "graph_version": self.graph_version}, path)
+                         "graph_version": self.graph_version, "seq_gaps": self.gaps.state_dict()}, path)
 
     @staticmethod
     def version_path(checkpoint: Path) -> Path:
@@ -156,6 +164,8 @@ class DynamicsLearnerCore:
         self.version = max(int(saved["version"]), self._published_version(path))
         self.env_steps = int(saved["env_steps"])
         self.graph_version = int(saved["graph_version"])
+        if "seq_gaps" in saved:  # checkpoints written before the loss was counted have none
+            self.gaps.load_state_dict(saved["seq_gaps"])
         self.resumed_at_update, self.resumed_env_steps = self.trainer.updates, self.env_steps
         return True
 
@@ -163,4 +173,4 @@ class DynamicsLearnerCore:
         return {"updates": self.trainer.updates, "env_steps": self.env_steps, "replay_size": self.replay.size,
                 "weights_version": self.version, "resumed_at_update": self.resumed_at_update,
                 "resumed_env_steps": self.resumed_env_steps,
-                "lr": self.trainer.lr, **self.last_stats}
+                "lr": self.trainer.lr, **self.gaps.stats(), **self.last_stats}

@@ -42,8 +42,22 @@ class _Metrics:
         self.live = m.gauge("causeway_dynamics_live_score",
                             "A score the trainer gives its model on fixed unseen data every few updates, by name "
                             "(FLAM: psnr in dB, dci_d, dci_c, dci_i ratios, slot<k>_kl in nats)", ("name",))
+        self.lost = m.gauge("causeway_learner_transitions_lost",
+                            "Transitions lost before reaching the model, from gaps in each worker life's seq, by "
+                            "unit (batches; steps, counted at the length of the batch after the gap); resumed from "
+                            "the checkpoint, so what a learner restart loses counts too; falls when a batch counted "
+                            "lost arrives late", ("unit",))
+        self.out_of_order = m.gauge("causeway_learner_batches_out_of_order",
+                                    "TransitionBatches that arrived after a successor (late) or twice (duplicate), "
+                                    "by kind; neither is counted lost twice", ("kind",))
         self.ratio_wait = m.counter("causeway_dynamics_ratio_wait_seconds",
                                     "Seconds the learner waited for env steps at --updates-per-env-step")
+
+    def show_gaps(self, gaps: dict[str, float]) -> None:
+        self.lost.labels(unit="batches").set(gaps["lost_batches"])
+        self.lost.labels(unit="steps").set(gaps["lost_steps"])
+        self.out_of_order.labels(kind="late").set(gaps["late_batches"])
+        self.out_of_order.labels(kind="duplicate").set(gaps["duplicate_batches"])
 
 
 def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
@@ -81,6 +95,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
                 shell.checkpoint_requested, last_ckpt = False, now
             metrics.replay.set(core.replay.size)
             metrics.env_steps.set(core.env_steps)
+            metrics.show_gaps(core.gaps.stats())
             metrics.ratio.set(core.trainer.updates / max(core.env_steps, 1))
             metrics.lr.set(core.trainer.lr)
             shell.beat(core.progress())

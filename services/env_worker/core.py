@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from envs.registry import EnvEntry, env_entry
-from proto.messages import EnvSpec, FrameBatch, TransitionBatch, Weights
+from proto.messages import WORKER_LIFE_EPISODES, EnvSpec, FrameBatch, TransitionBatch, Weights
 from proto.messages import SkillBatch
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.episodes import EpisodeStats
@@ -57,13 +57,16 @@ class PolicyActor:
     :class:`~envs.skills.SkillPolicy` runs it; loading newer weights keeps the running skill.
     torch is imported with the first weights, so a worker that never follows a policy starts fast."""
 
-    def __init__(self, obs_dim: int, seed: int, action_space=None, skill_runner: type | None = None) -> None:
+    def __init__(self, obs_dim: int, seed: int, action_space=None, skill_runner: type | None = None,
+                 known_version: int = 0) -> None:
+        """``known_version``: a policy version known published when this worker started (the bound of
+        the first version it takes, :class:`~services.runtime.accept.VersionGate`)."""
         self.obs_dim, self.seed, self.action_space, self.skill_runner = obs_dim, seed, action_space, skill_runner
         self.agent: Agent | None = None
         self.skills = None
         self.config_json = ""
         self.version = 0
-        self.versions = VersionGate()
+        self.versions = VersionGate(known=known_version)
 
     def load(self, weights: Weights) -> bool:
         """Take ``weights`` if newer than the current ones (ValueError if they do not fit this env;
@@ -124,7 +127,7 @@ class PolicyActor:
 
 GENERATION_SEED_STRIDE = 1_000_003
 """Seed offset per restart of a worker (a prime far above any worker index)."""
-GENERATION_EPISODES = 10**9
+GENERATION_EPISODES = WORKER_LIFE_EPISODES
 """Episode ids of restart k start at k x this (ids stay unique per worker id across restarts)."""
 
 
@@ -177,7 +180,8 @@ class EnvWorkerCore:
         self.spec: EnvSpec = with_declared_bounds(self.env.unwrapped.env_spec(), self.env.observation_space)
         seed = cfg.seed + cfg.worker_index + GENERATION_SEED_STRIDE * generation
         self.random_policy = default_policy(self.entry, self.env.action_space, seed)
-        self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner())
+        self.actor = PolicyActor(self.spec.state_dim, seed, self.env.action_space, self.entry.skill_runner(),
+                                 cfg.known_version)
         self.skild = None
         if cfg.skild:
             from causal.skild_policy import SkildActor

@@ -41,7 +41,7 @@ LEARNER_METRICS = {
     "causeway_update_seconds", "causeway_checkpoints_total",
     "causeway_dynamics_updates_per_env_step", "causeway_dynamics_ratio_wait_seconds_total",
     "causeway_dynamics_learning_rate", "causeway_dynamics_nonfinite_updates_total",
-    "causeway_dynamics_live_score",
+    "causeway_dynamics_live_score", "causeway_learner_transitions_lost", "causeway_learner_batches_out_of_order",
 }
 SKILD_LEARNER_METRICS = {  # the policy-learner of a --method skild run
     "causeway_skild_updates_total", "causeway_skild_env_steps_total", "causeway_skild_dropped_total",
