@@ -60,6 +60,13 @@ class Progress:
     def updates(self) -> int:
         return int(self.value("dynamics-learner", "updates"))
 
+    def transitions_lost(self) -> dict[str, int]:
+        """What the dynamics-learner counted lost on the way to it (``seq`` gaps), from its newest beat:
+        its count is resumed from its checkpoint, so it is the run's."""
+        learner = self.stats.get(("dynamics-learner", "0"))
+        values = learner.values if learner is not None else {}
+        return {"batches": int(values.get("lost_batches", 0)), "steps": int(values.get("lost_steps", 0))}
+
     def _per_second(self, name: str, total: float) -> float:
         now = time.monotonic()
         last_t, last_v = self._rate.get(name, (now, total))

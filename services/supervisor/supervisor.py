@@ -302,7 +302,7 @@ class Supervisor:
                  "env_options": env_entry(cfg.env).kwargs(cfg.env_options), "seed": cfg.seed, "workers": cfg.workers,
                  "env_steps": self.progress.env_steps(), "updates": self.progress.updates(),
                  "wall_seconds": round(wall_seconds, 1), "stopped_because": self.stop_reason or "stopped",
-                 "restarts": self.restarts(),
+                 "restarts": self.restarts(), "transitions_lost": self.progress.transitions_lost(),
                  "catch_up_seconds": round(wall_seconds - budget_at, 1) if budget_at is not None else 0.0,
                  "git_revision": git_revision()}
         task = {key: value for key in ("success_rate", "return_mean", "stages_mean")

@@ -133,3 +133,16 @@ def test_the_learner_counts_real_batches_across_a_worker_restart_and_its_own(tmp
     restarted = EnvWorkerCore(worker_cfg, generation=1)  # seq from 0 again, a new life
     resumed.ingest(restarted.collect())
     assert resumed.progress()["lost_batches"] == 2 and resumed.env_steps == 4 * 64 + 64
+
+
+def test_the_summary_takes_the_learners_newest_count() -> None:
+    import io
+
+    from proto.messages import ServiceStats
+    from services.supervisor.progress import Progress
+
+    p = Progress(stream=io.StringIO(), interactive=False)
+    assert p.transitions_lost() == {"batches": 0, "steps": 0}
+    p.on_stats(ServiceStats("dynamics-learner", "0", {"lost_batches": 3.0, "lost_steps": 768.0}))
+    p.on_stats(ServiceStats("dynamics-learner", "0", {"lost_batches": 2.0, "lost_steps": 512.0, "resumed_at_update": 5}))
+    assert p.transitions_lost() == {"batches": 2, "steps": 512}
