@@ -23,13 +23,46 @@ from __future__ import annotations
 import json
 import socket
 import time
+from typing import Any, Sequence
 
 import zenoh
 
+from proto import topics
 from services.bus.credentials import Credentials, RouterAuth, RouterTls
 
 LOOPBACK_ROUTER = "tcp/127.0.0.1:7447"
 """The embedded default: the local supervisor's router."""
+
+ROUTER_COMMON_NAME = "causeway-router"
+"""The common name of every router certificate ``causeway bus-secrets --tls-name`` makes; a router that
+joins another trusts the far side of its link by it (and by the CA that signed it)."""
+
+ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
+                "declare_liveliness_subscriber", "liveliness_query")
+"""Every message kind Zenoh 1.10's access control filters."""
+
+
+def with_meshed_routers(acl: dict[str, Any], run: str, usernames: Sequence[str] = (),
+                        cert_common_names: Sequence[str] = ()) -> dict[str, Any]:
+    """``acl`` (a router's ``access_control``) that also lets the run's traffic cross links to other routers.
+
+    Routers meshed across hosts carry every role's messages, so the link between two of them is allowed
+    every message kind, both ways, on the run's keys (``causeway/<run>/**``) and nothing else. Who is a
+    router: on the router that is joined, the user the joining router authenticates as (``usernames``);
+    on the joining router, the router it connected to, by its certificate's common name
+    (``cert_common_names``; Zenoh's ``usrpwd`` authenticates only the side that opens the link). Each
+    router still applies its own roles to its own clients: a router is trusted to enforce them."""
+    subjects = ([{"id": "meshed-router-users", "usernames": list(usernames)}] if usernames else []) + \
+        ([{"id": "meshed-router-certificates", "cert_common_names": list(cert_common_names)}] if cert_common_names
+         else [])  # two subjects: one subject's properties must all match
+    if not subjects:
+        return acl
+    topics.alive(run)  # a valid run id
+    rule = {"id": "meshed-routers", "permission": "allow", "flows": ["ingress", "egress"],
+            "messages": list(ALL_MESSAGES), "key_exprs": [f"{topics.ROOT}/{run}/**"]}
+    policy = {"id": "meshed-routers", "rules": ["meshed-routers"], "subjects": [s["id"] for s in subjects]}
+    return {**acl, "rules": [*acl["rules"], rule], "subjects": [*acl["subjects"], *subjects],
+            "policies": [*acl["policies"], policy]}
 
 
 def router_config(listen: str = LOOPBACK_ROUTER, auth: RouterAuth | None = None,

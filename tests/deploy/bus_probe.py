@@ -1,8 +1,17 @@
 """Small Zenoh programs the multi-host tests run inside network namespaces (``ip netns exec``).
 
-    python -m tests.deploy.bus_probe router  --listen E [--listen E2] [--connect E]
-    python -m tests.deploy.bus_probe publish --connect E --run R --worker W --rate B --seconds S
-    python -m tests.deploy.bus_probe count   --connect E --run R --seconds S
+    python -m tests.deploy.bus_probe router  --listen E [--listen E2] [--connect E] [--config FILE]
+    python -m tests.deploy.bus_probe publish --connect E --run R --worker W --rate B --seconds S [BUS]
+    python -m tests.deploy.bus_probe count   --connect E --run R --seconds S [BUS]
+    python -m tests.deploy.bus_probe open    --connect E [BUS]
+    python -m tests.deploy.bus_probe put     --connect E --key K --payload P --seconds S [BUS]
+    python -m tests.deploy.bus_probe watch   --connect E --key K --seconds S [BUS]
+
+``BUS`` is ``--credentials FILE`` (a role's ``user:password`` file) and ``--root-ca FILE`` (the CA of a
+``tls/`` router), both optional. ``--config`` runs a router from a configuration file (``causeway
+bus-secrets``' ``router.json5``, without its plugins) instead of an open one; ``--listen`` then
+replaces its endpoints. ``open`` tries to open a session and says whether it did; ``put`` publishes
+``P`` on ``K`` ten times a second; ``watch`` counts what arrives on ``K`` by payload.
 
 ``router`` runs a Zenoh router (the Python session, as ``services.bus.router``; ``--connect`` meshes it
 with another router) until SIGTERM. ``publish`` sends real ``TransitionBatch`` messages (256 steps of
@@ -26,7 +35,8 @@ import numpy as np
 from proto import topics
 from proto.codec import decode, encode
 from proto.messages import TransitionBatch
-from services.bus.router import router_config, wait_for_router
+from services.bus.credentials import Credentials, read_credentials
+from services.bus.router import client_config, router_config, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
 
 STEPS = 256
@@ -46,10 +56,16 @@ def batch(worker: str, seq: int) -> TransitionBatch:
                            episode_id=np.full(STEPS, seq // 4, np.int64), step=np.arange(STEPS, dtype=np.int32))
 
 
-def run_router(listen: Sequence[str], connect: Sequence[str]) -> None:
+def run_router(listen: Sequence[str], connect: Sequence[str], config_file: str = "") -> None:
     import zenoh
 
-    config = router_config(listen[0])
+    if config_file:
+        config = zenoh.Config.from_file(config_file)
+        config.insert_json5("plugins", "{}")
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("scouting/delay", "0")
+    else:
+        config = router_config(listen[0])
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
@@ -60,9 +76,16 @@ def run_router(listen: Sequence[str], connect: Sequence[str]) -> None:
     session.close()
 
 
-def run_publish(connect: str, run: str, worker: str, rate: float, seconds: float) -> dict:
-    wait_for_router(connect, timeout=60)
-    bus = ZenohTransport(connect)
+def _bus(connect: str, credentials: Credentials | None, root_ca: str) -> ZenohTransport:
+    """A client of ``connect`` once the router answers (a plain one is probed on its own endpoint)."""
+    if not root_ca:
+        wait_for_router(connect, timeout=60, credentials=credentials)
+    return ZenohTransport(connect, credentials, root_ca)
+
+
+def run_publish(connect: str, run: str, worker: str, rate: float, seconds: float,
+                credentials: Credentials | None = None, root_ca: str = "") -> dict:
+    bus = _bus(connect, credentials, root_ca)
     sent, started = 0, time.monotonic()
     try:
         while time.monotonic() - started < seconds:
@@ -77,7 +100,8 @@ def run_publish(connect: str, run: str, worker: str, rate: float, seconds: float
     return {"worker": worker, "sent": sent, "seconds": round(elapsed, 3)}
 
 
-def run_count(connect: str, run: str, seconds: float) -> dict:
+def run_count(connect: str, run: str, seconds: float, credentials: Credentials | None = None,
+              root_ca: str = "") -> dict:
     lock = threading.Lock()
     seen: dict[str, dict] = {}
     started = time.time()
@@ -91,14 +115,57 @@ def run_count(connect: str, run: str, seconds: float) -> dict:
             entry["seqs"].append(message.seq)
             entry["arrivals"].append(round(time.time() - started, 3))
 
-    wait_for_router(connect, timeout=60)
-    bus = ZenohTransport(connect)
+    bus = _bus(connect, credentials, root_ca)
     handle = bus.subscribe(topics.transitions(run), on_payload)
     time.sleep(seconds)
     handle.close()
     bus.close()
     with lock:
         return {"started": started, "workers": {w: _summary(e) for w, e in seen.items()}}
+
+
+def run_open(connect: str, credentials: Credentials | None, root_ca: str) -> dict:
+    import zenoh
+
+    config = client_config(connect, credentials, root_ca)
+    config.insert_json5("connect/timeout_ms", "5000")
+    try:
+        zenoh.open(config).close()
+    except zenoh.ZError as error:
+        return {"opened": False, "error": str(error)[:300]}
+    return {"opened": True, "error": ""}
+
+
+def run_put(connect: str, key: str, payload: str, seconds: float, credentials: Credentials | None,
+            root_ca: str) -> dict:
+    bus = _bus(connect, credentials, root_ca)
+    sent, started = 0, time.monotonic()
+    while time.monotonic() - started < seconds:
+        bus.publish(key, payload.encode(), reliable=True)
+        sent += 1
+        time.sleep(0.1)
+    time.sleep(LINGER_S)
+    bus.close()
+    return {"sent": sent}
+
+
+def run_watch(connect: str, key: str, seconds: float, credentials: Credentials | None, root_ca: str) -> dict:
+    lock = threading.Lock()
+    payloads: dict[str, int] = {}
+
+    def on_payload(_: str, payload: bytes) -> None:
+        with lock:
+            text = payload.decode(errors="replace")
+            payloads[text] = payloads.get(text, 0) + 1
+
+    bus = _bus(connect, credentials, root_ca)
+    handle = bus.subscribe(key, on_payload)
+    print(json.dumps({"watching": key}), flush=True)
+    time.sleep(seconds)
+    handle.close()
+    bus.close()
+    with lock:
+        return {"payloads": payloads}
 
 
 def _summary(entry: dict) -> dict:
@@ -115,22 +182,38 @@ def main(argv: Sequence[str] | None = None) -> None:
     router = sub.add_parser("router")
     router.add_argument("--listen", action="append", required=True)
     router.add_argument("--connect", action="append", default=[])
-    for name in ("publish", "count"):
+    router.add_argument("--config", default="")
+    for name in ("publish", "count", "open", "put", "watch"):
         p = sub.add_parser(name)
         p.add_argument("--connect", required=True)
-        p.add_argument("--run", required=True)
-        p.add_argument("--seconds", type=float, required=True)
+        p.add_argument("--credentials", default="")
+        p.add_argument("--root-ca", default="")
+        if name in ("publish", "count"):
+            p.add_argument("--run", required=True)
+        if name != "open":
+            p.add_argument("--seconds", type=float, required=True)
         if name == "publish":
             p.add_argument("--worker", required=True)
             p.add_argument("--rate", type=float, default=0.0)
+        if name in ("put", "watch"):
+            p.add_argument("--key", required=True)
+        if name == "put":
+            p.add_argument("--payload", required=True)
     args = parser.parse_args(argv)
     if args.program == "router":
-        run_router(args.listen, args.connect)
+        run_router(args.listen, args.connect, args.config)
         return
+    bus = (args.connect, read_credentials(args.credentials) if args.credentials else None, args.root_ca)
     if args.program == "publish":
-        result = run_publish(args.connect, args.run, args.worker, args.rate, args.seconds)
+        result = run_publish(args.connect, args.run, args.worker, args.rate, args.seconds, *bus[1:])
+    elif args.program == "count":
+        result = run_count(args.connect, args.run, args.seconds, *bus[1:])
+    elif args.program == "open":
+        result = run_open(*bus)
+    elif args.program == "put":
+        result = run_put(args.connect, args.key, args.payload, args.seconds, *bus[1:])
     else:
-        result = run_count(args.connect, args.run, args.seconds)
+        result = run_watch(args.connect, args.key, args.seconds, *bus[1:])
     sys.stdout.write(json.dumps(result) + "\n")
 
 

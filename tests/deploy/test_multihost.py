@@ -5,6 +5,12 @@ it. Every program is a client of its own host's router, as a service is of its h
 - integration (CI): transitions from A reach a subscriber on B through the two routers, and the
   rate across the link is measured against the rate within B; a 10-second partition of the link
   is counted (batches lost, how long the stream stalled) and the stream goes on after it heals.
+- integration, roles and TLS: a second pair of routers started from ``causeway bus-secrets`` output
+  (users, the roles' access control; A listens on the link with ``tls/`` and a certificate the
+  command made, B joins it over TLS as a user of its own): transitions published on A with the
+  env-worker's credentials reach a subscriber with the learner's on B, at a rate measured against
+  the open ``tcp/`` pair in the same run; a client without the CA, anonymous clients and a stop
+  forged with the env-worker's credentials are refused, while the operator's stop crosses.
 - slow: the same partition under the real services (an env-worker per host, the learner and the
   evaluator on B): the learner keeps updating through it and the run goes on.
 
@@ -23,6 +29,7 @@ from typing import Any, Iterator
 
 import pytest
 
+from services.cli import main as cli_main
 from tests.deploy import REPO
 from tests.deploy.netns import Host, TwoHosts, make_two_hosts
 
@@ -32,6 +39,9 @@ ARTIFACTS = REPO / "test-artifacts" / "multihost"
 PORT = 7447
 RUN = "multihost"
 LOCAL = f"tcp/127.0.0.1:{PORT}"
+ROLES_PORT = 7448
+"""The pair with roles and TLS: each host's clients on loopback, A's router on the link with tls/."""
+LOCAL_ROLES = f"tcp/127.0.0.1:{ROLES_PORT}"
 
 
 def _probe(*args: str) -> list[str]:
@@ -52,6 +62,30 @@ def hosts() -> Iterator[TwoHosts]:
         yield pair
     finally:
         pair.close()
+
+
+def _bus_secrets(out: Path, *args: str) -> Path:
+    """``causeway bus-secrets`` for run ``RUN`` into ``out`` (the routers read their files there)."""
+    assert cli_main(["bus-secrets", "--run", RUN, "--out", str(out), "--users-file", str(out / "secrets" / "router-users"),
+                     "--router-config", str(REPO / "deploy" / "zenoh" / "router.json5"), *args]) == 0
+    return out / "secrets"
+
+
+@pytest.fixture
+def secured(hosts: TwoHosts, tmp_path: Path) -> Iterator[tuple[TwoHosts, Path, Path]]:
+    """Beside the open pair: a router per host from ``causeway bus-secrets`` (roles), A listening on the
+    link with TLS (its certificate for its link address), B joining it as user ``router-b``."""
+    link = f"tls/{hosts.a.address}:{ROLES_PORT}"
+    a = _bus_secrets(tmp_path / "a", "--listen", link, "--listen", LOCAL_ROLES, "--tls-name", hosts.a.address,
+                     "--mesh-user", "router-b")
+    b = _bus_secrets(tmp_path / "b", "--listen", LOCAL_ROLES, "--join", link, "--join-credentials",
+                     str(a / "router-b.credentials"), "--join-ca", str(a / "bus-ca.pem"))
+    routers = [hosts.a.start(_probe("router", "--config", str(a / "router.json5"), "--listen", link,
+                                    "--listen", LOCAL_ROLES), cwd=REPO),
+               hosts.b.start(_probe("router", "--config", str(b / "router.json5"), "--listen", LOCAL_ROLES), cwd=REPO)]
+    for router in routers:
+        _wait_for_line(router, 60)
+    yield hosts, a, b
 
 
 def _wait_for_line(process: Any, timeout: float) -> str:
@@ -143,6 +177,60 @@ def test_a_ten_second_partition_is_counted_and_the_stream_goes_on(hosts: TwoHost
     assert len(after_heal) >= 0.5 * rate * 5, f"the stream did not resume after the heal: {figures}"
     assert worker["last_seq"] >= sent["sent"] - 2 * rate, figures
     assert figures["longest_stall_s"] >= 5, "a 10-second partition must show as a stall"
+
+
+@integration
+def test_with_roles_transitions_cross_a_tls_link_between_routers(secured: tuple[TwoHosts, Path, Path]) -> None:
+    hosts, a, b = secured
+    learner = ("--credentials", str(b / "dynamics-learner.credentials"))
+    worker = ("--credentials", str(a / "env-worker.credentials"))
+    counters = {"tls_with_roles": hosts.b.start(_probe("count", "--connect", LOCAL_ROLES, "--run", RUN, "--seconds", "24",
+                                                       *learner), cwd=REPO),
+                "tcp_open": hosts.b.start(_probe("count", "--connect", LOCAL, "--run", RUN, "--seconds", "24"), cwd=REPO)}
+    time.sleep(3)  # the counters subscribed, router B joined router A
+    publishers = {"tls_with_roles": (LOCAL_ROLES, *worker), "tcp_open": (LOCAL,)}
+    for name, (connect, *bus) in publishers.items():
+        _result(hosts.a, hosts.a.start(_probe("publish", "--connect", connect, "--run", RUN, "--worker", "a",
+                                              "--seconds", "5", *bus), cwd=REPO), 60)
+        time.sleep(2)  # drained before the next stream
+    workers = {name: _result(hosts.b, counter, 60)["workers"] for name, counter in counters.items()}
+    assert set(workers["tls_with_roles"]) == {"a"}, "env-worker batches from A must reach the learner's subscriber on B"
+    rates = {name: round(_steps_per_second(w["a"])) for name, w in workers.items()}
+    lost = {name: w["a"]["lost"] for name, w in workers.items()}
+    _record("tls_link_vs_tcp_link_transitions_per_second",
+            {**rates, "ratio_tls_with_roles_to_tcp_open": round(rates["tls_with_roles"] / rates["tcp_open"], 3),
+             "batches_received": {n: w["a"]["batches"] for n, w in workers.items()}, "batches_lost": lost})
+    assert lost == {"tls_with_roles": 0, "tcp_open": 0}, lost
+    assert min(rates.values()) > 1000, rates
+
+
+@integration
+def test_with_roles_the_tls_routers_refuse_strangers_and_wrong_roles(secured: tuple[TwoHosts, Path, Path]) -> None:
+    hosts, a, b = secured
+    link = f"tls/{hosts.a.address}:{ROLES_PORT}"
+    ca, worker = str(a / "bus-ca.pem"), str(a / "env-worker.credentials")
+    attempts = {"tls_without_ca": ("--connect", link, "--credentials", worker),
+                "tls_anonymous": ("--connect", link, "--root-ca", ca),
+                "local_anonymous_on_b": ("--connect", LOCAL_ROLES),
+                "other_hosts_password_on_b": ("--connect", LOCAL_ROLES, "--credentials", worker),
+                "tls_with_ca_and_credentials": ("--connect", link, "--credentials", worker, "--root-ca", ca)}
+    started = {name: hosts.b.start(_probe("open", *args), cwd=REPO) for name, args in attempts.items()}
+    opened = {name: _result(hosts.b, process, 60)["opened"] for name, process in started.items()}
+    assert opened == {"tls_without_ca": False, "tls_anonymous": False, "local_anonymous_on_b": False,
+                      "other_hosts_password_on_b": False, "tls_with_ca_and_credentials": True}, opened
+    stop = f"causeway/{RUN}/control/all"
+    watcher = hosts.b.start(_probe("watch", "--connect", LOCAL_ROLES, "--key", stop, "--seconds", "12",
+                                   "--credentials", str(b / "supervisor.credentials")), cwd=REPO)
+    _wait_for_line(watcher, 60)
+    time.sleep(1)
+    puts = [hosts.a.start(_probe("put", "--connect", LOCAL_ROLES, "--key", stop, "--payload", f"stop-by-{role}",
+                                 "--seconds", "3", "--credentials", str(a / f"{role}.credentials")), cwd=REPO)
+            for role in ("env-worker", "operator")]
+    sent = [_result(hosts.a, put, 60)["sent"] for put in puts]
+    assert min(sent) > 0, sent
+    payloads = _result(hosts.b, watcher, 60)["payloads"]
+    _record("tls_link_refusals", {"opened": opened, "stops_received_on_b": payloads})
+    assert set(payloads) == {"stop-by-operator"}, payloads  # the env-worker's stop never crossed
 
 
 def _service_env(host: Host, run_dir: Path, **settings: str) -> dict[str, str]:
