@@ -203,10 +203,11 @@ def graph_document(report: GraphReport, received_at: float) -> dict:
     names = list(report.factor_names)
     outcome = classify(report.adjacency, report.true_graph)
     truth = report.true_graph
-    stderr, undecided = report.cmi_stderr, report.undecided
+    stderr, undecided, null = report.cmi_stderr, report.undecided, report.cmi_null
     cells = [[{"cmi": short(report.cmi[i, j]), "learned": bool(report.adjacency[i, j]),
                "truth": None if truth is None else bool(truth[i, j]), "outcome": outcome[i][j],
-               **({} if stderr is None else {"stderr": short(stderr[i, j]), "undecided": bool(undecided[i, j])})}
+               **({} if stderr is None else {"stderr": short(stderr[i, j]), "undecided": bool(undecided[i, j])}),
+               **({} if null is None else {"null": short(null[i, j])})}
               for j in range(report.cmi.shape[1])] for i in range(report.cmi.shape[0])]
     counts = None if truth is None else count_outcomes(outcome)
     classes = [{"key": key, "label": label, "factors": [{"index": i, "name": names[i]} for i in getattr(report, key)]}
@@ -222,7 +223,8 @@ def graph_document(report: GraphReport, received_at: float) -> dict:
 
 
 def edge_rule_document(report: GraphReport) -> dict:
-    """How the report's edges were decided, and how many entries are undecided (None without standard errors)."""
-    return {"edge_rule": report.edge_rule, "fdr": report.fdr, "min_cmi": report.min_cmi,
+    """How the report's edges were decided (``bias``: what the fdr rule tests the dynamics CMI against),
+    and how many entries are undecided (None without standard errors)."""
+    return {"edge_rule": report.edge_rule, "fdr": report.fdr, "min_cmi": report.min_cmi, "bias": report.bias,
             "undecided": None if report.undecided is None else int(report.undecided.sum())}
 

@@ -6,7 +6,8 @@ screenshot in test-artifacts/dashboard.png. Then the local-graph panel: shown wi
 example transition's matrices for runs with local-graph reports (with or without a global graph),
 hidden for runs without; screenshot in test-artifacts/dashboard-local.png. Then a run with a reward
 graph (CBM): the reward row under the heat maps, its scores and the minimal abstraction's classes;
-screenshot in test-artifacts/dashboard-reward.png.
+screenshot in test-artifacts/dashboard-reward.png; and its standard errors and undecided entries
+under the fdr rule (issue 22).
 """
 from __future__ import annotations
 
@@ -321,6 +322,54 @@ def test_undecided_entries_are_outlined_and_hover_shows_the_interval(stack) -> N
         assert low == pytest.approx(cmi - 1.96 * 0.002, rel=5e-3) and high == pytest.approx(cmi + 1.96 * 0.002, rel=5e-3)
         assert "crosses the boundary" in tip and "at FDR 0.05" in tip
         assert browser.exceptions == []
+
+
+def test_the_reward_row_shows_its_intervals_and_undecided_entries(stack) -> None:
+    """CBM under the fdr rule with an estimated bias: the reward row's standard errors and undecided
+    entries reach the page as the dynamics graph's do, its rule (against min_cmi) named apart."""
+    publisher, latest, base = stack
+    plain = make_reward_report(3, version=4, errors=1, reward_errors=2)
+    undecided = np.zeros(plain.cmi.shape, np.uint8)
+    undecided[3, 0] = 1
+    reward_undecided = np.zeros(10, np.uint8)
+    reward_undecided[2] = 1  # obj0.y -> reward
+    null = np.full(plain.cmi.shape, 1e-3, np.float32)
+    report = replace(plain, cmi_stderr=np.full(plain.cmi.shape, 0.002, np.float32), undecided=undecided,
+                     edge_rule="fdr", fdr=0.05, min_cmi=5e-3, bias="pooled", cmi_null=null,
+                     reward_stderr=np.full(10, 0.004, np.float32), reward_undecided=reward_undecided)
+    cbm = publisher.serve_latest(topics.graph("cbm-tested", "cbm"))
+    cbm.set(encode(report))
+    try:
+        wait_for(lambda: fetch_json(f"{base}/api/runs/cbm-tested")["graph"], 10, "the CBM report")
+        with Browser(width=1440, height=1000) as browser:
+            browser.navigate(f"{base}/?run=cbm-tested")
+            browser.wait_for("document.body.dataset.weightsVersion === '4'", 10, "the CBM run")
+            outlined = browser.evaluate("[...document.querySelectorAll('#heatmap-learned rect.cell-undecided')]"
+                                        ".filter(r => r.getAttribute('visibility') === 'visible')"
+                                        ".map(r => [Number(r.getAttribute('y')), Number(r.getAttribute('x'))])")
+            assert len(outlined) == 2 and max(outlined)[0] > min(outlined)[0]  # one of them in the reward row
+            legend = text(browser, "#legend-learned")
+            assert "undecided (2, 1 in the reward row)" in legend
+            assert "its output's largest null at FDR 0.05" in legend and "reward row: CMI > 0.00500" in legend
+            browser.fit_to_content()
+            browser.hover("#heatmap-learned rect.cell[data-i='9'][data-j='1']")  # obj0.x -> reward, 0.05 ± 0.004
+            tip = browser.wait_for("!document.getElementById('tooltip').hidden"
+                                   " && document.getElementById('tooltip').innerText", 5, "the tooltip")
+            low, high = (float(x) for x in re.search(r"95% interval\s+([-0-9.e]+) – ([-0-9.e]+)", tip).groups())
+            score = float(report.reward_scores[1])
+            assert low == pytest.approx(score - 1.96 * 0.004, rel=5e-3) and high == pytest.approx(score + 1.96 * 0.004, rel=5e-3)
+            assert "reward CMI" in tip and "CMI > 0.00500 at FDR 0.05" in tip and "permuted null" not in tip
+            browser.hover("#heatmap-learned rect.cell[data-i='9'][data-j='2']")  # obj0.y -> reward, undecided
+            tip = browser.wait_for("document.getElementById('tooltip').innerText.includes('obj0.y → reward')"
+                                   " && document.getElementById('tooltip').innerText", 5, "the undecided cell")
+            assert "crosses the boundary" in tip
+            browser.hover("#heatmap-learned rect.cell[data-i='3'][data-j='0']")  # a dynamics entry: its null
+            tip = browser.wait_for("document.getElementById('tooltip').innerText.includes('effect (t+1)')"
+                                   " && document.getElementById('tooltip').innerText", 5, "a dynamics cell")
+            assert re.search(r"permuted null\s+0\.00100 nats", tip) and "CMI > its output's largest null" in tip
+            assert browser.exceptions == []
+    finally:
+        cbm.close()
 
 
 def test_a_flam_run_shows_its_per_slot_latent_actions(stack) -> None:

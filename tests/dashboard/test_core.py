@@ -178,3 +178,42 @@ def test_cells_carry_standard_errors_and_undecided_entries_where_the_report_has_
     assert graph["cells"][1][0] == {"cmi": pytest.approx(0.04), "learned": True, "truth": False, "outcome": "fp",
                                     "stderr": pytest.approx(0.01), "undecided": True}
     assert (graph["edge_rule"], graph["fdr"], graph["min_cmi"], graph["undecided"]) == ("fdr", 0.05, 5e-4, 1)
+
+
+def test_the_reward_row_carries_its_standard_errors_and_undecided_entries() -> None:
+    from dataclasses import replace
+
+    from tests.dashboard.reports import make_reward_report
+
+    plain = make_reward_report(num_objects=3, reward_errors=2)
+    state = DashboardState()
+    state.add_report("r", plain, now=1.0)
+    reward = state.snapshot("r", now=1.0)["graph"]["reward"]
+    assert reward["undecided"] is None and all("stderr" not in c and "undecided" not in c for c in reward["cells"])
+    stderr = np.linspace(1e-4, 1e-2, 10).astype(np.float32)
+    undecided = np.zeros(10, np.uint8)
+    undecided[[1, 4]] = 1
+    tested = replace(plain, weights_version=2, timestamp=plain.timestamp + 1, reward_stderr=stderr,
+                     reward_undecided=undecided)
+    assert state.add_report("r", tested, now=2.0)
+    reward = json.loads(json.dumps(state.snapshot("r", now=2.0)["graph"]["reward"]))
+    assert [c["stderr"] for c in reward["cells"]] == pytest.approx(stderr.tolist(), rel=1e-4)
+    assert [c["undecided"] for c in reward["cells"]] == [False, True, False, False, True] + [False] * 5
+    assert reward["undecided"] == 2
+
+
+def test_cells_carry_the_permuted_null_and_the_graph_its_bias() -> None:
+    from dataclasses import replace
+
+    state = DashboardState()
+    state.add_report("r", tiny_report(), now=1.0)
+    plain = state.snapshot("r", now=1.0)["graph"]
+    assert plain["bias"] == "fixed" and all("null" not in c for row in plain["cells"] for c in row)
+    null = np.array([[0.0, 2e-3, 1e-4], [3e-3, 0.0, 5e-4]], np.float32)
+    tested = replace(tiny_report(timestamp=2.0, version=2), cmi_stderr=np.full((2, 3), 0.01, np.float32),
+                     undecided=np.zeros((2, 3), np.uint8), edge_rule="fdr", fdr=0.05, min_cmi=5e-3,
+                     bias="pooled", cmi_null=null)
+    assert state.add_report("r", tested, now=2.0)
+    graph = json.loads(json.dumps(state.snapshot("r", now=2.0)["graph"]))
+    assert graph["bias"] == "pooled"
+    assert [c["null"] for row in graph["cells"] for c in row] == pytest.approx(null.ravel().tolist(), rel=1e-4)

@@ -1,6 +1,6 @@
 // The three heat maps (learned CMI, ground truth, comparison) with linked hover, and the CMI colour bar.
 // Where the report has standard errors, hover shows each entry's 95% interval and the learned map
-// outlines (dashed) the entries the held-out data cannot yet decide.
+// outlines (dashed) the entries the held-out data cannot yet decide, the reward row's (CBM) too.
 // The local-graph panel reuses them for one example transition: its graph-like object carries
 // `labels` (score name and unit, what a found edge is called) where they differ from the global graph's.
 
@@ -169,13 +169,14 @@ export class GraphViews {
       ['95% interval', `${fmt.cmi(c.cmi - 1.96 * c.stderr)} – ${fmt.cmi(c.cmi + 1.96 * c.stderr)}${unit}`],
       ['decided', c.undecided ? 'no: the interval crosses the boundary' : 'yes'],
     ];
-    const fdr = graph.edge_rule === 'fdr' && !reward;
+    const nulled = c.null == null || reward ? [] : [['permuted null', `${fmt.cmi(c.null)}${unit}`]];
     tooltip.show(`${graph.cause_names[j]} → ${effect}`, [
       ['cause (t)', graph.cause_names[j]],
       reward ? ['effect', 'reward r_t (causal reward model)'] : ['effect (t+1)', effect],
       [reward ? 'reward CMI' : labels.score, `${fmt.cmi(c.cmi)}${unit}`],
       ...tested,
-      fdr ? ['edge rule', `CMI > ${fmt.cmi(graph.min_cmi)} at FDR ${graph.fdr}`]
+      ...nulled,
+      graph.edge_rule === 'fdr' ? ['edge rule', `${testedAgainst(graph, reward, 'CMI')} at FDR ${graph.fdr}`]
         : ['threshold ε', `${fmt.cmi(c.threshold ?? graph.threshold)}${unit}`],
       [labels.learned, yesNo(c.learned)],
       ['truth', yesNo(c.truth)],
@@ -197,6 +198,14 @@ export class GraphViews {
   }
 }
 
+// What the fdr rule tests a score against: min_cmi, or (dynamics rows under an estimated bias) the
+// permuted-input null; the reward row (CBM) has no null and is always tested against min_cmi.
+const NULLS = { permuted: 'its permuted null', pooled: "its output's largest null", global: "the graph's largest null" };
+function testedAgainst(graph, reward, score) {
+  const null_ = !reward && NULLS[graph.bias];
+  return null_ ? `${score} > ${null_}` : `${score} > ${fmt.cmi(graph.min_cmi)}`;
+}
+
 function renderColorbar(graph, container) {
   const domain = cmiDomain(graph);
   const labels = labelsOf(graph);
@@ -216,13 +225,17 @@ function renderColorbar(graph, container) {
   const dot = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
   svg('circle', { cx: 6, cy: 6, r: 3, fill: '#0f172a' }, dot.firstChild);
   const rule = graph.edge_rule === 'fdr'
-    ? `test of ${labels.score} > ${fmt.cmi(graph.min_cmi)} at FDR ${graph.fdr}` : `${labels.score} ≥ ε`;
-  dot.append(`${labels.learned} edge (${rule})`);
+    ? `test of ${testedAgainst(graph, false, labels.score)} at FDR ${graph.fdr}` : `${labels.score} ≥ ε`;
+  const rewardRule = graph.reward && graph.edge_rule === 'fdr' && NULLS[graph.bias]
+    ? `; reward row: ${testedAgainst(graph, true, labels.score)}` : '';
+  dot.append(`${labels.learned} edge (${rule}${rewardRule})`);
   const keys = [bar, dot];
-  if (graph.undecided != null) {
+  const inReward = graph.reward ? graph.reward.undecided : null;
+  if (graph.undecided != null || inReward != null) {
     const box = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
     svg('rect', { class: 'cell-undecided', x: 1, y: 1, width: 10, height: 10, rx: 2 }, box.firstChild);
-    box.append(`undecided (${graph.undecided})`);
+    const total = (graph.undecided ?? 0) + (inReward ?? 0);
+    box.append(`undecided (${total}${inReward ? `, ${inReward} in the reward row` : ''})`);
     keys.push(box);
   }
   container.replaceChildren(...keys);
