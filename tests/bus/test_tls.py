@@ -55,3 +55,22 @@ def test_a_tls_router_with_roles(tmp_path: Path) -> None:
         assert received and set(received) == {b"stop"}
     finally:
         router.close()
+
+
+def test_a_certificate_from_bus_secrets_is_verified_by_name(tmp_path: Path) -> None:
+    """``causeway bus-secrets --tls-name``'s certificate (services.ops.bus_tls): a client that reaches the
+    router by a name the certificate carries gets in; by one it does not carry, it is refused."""
+    pytest.importorskip("cryptography")
+    from services.ops.bus_tls import write_tls
+
+    files = write_tls(tmp_path, ["localhost"])
+    auth = write_run_secrets(tmp_path, new_passwords(), access_control(run_roles(RUN, "cdl")))
+    port = free_tcp_port()
+    router = start_router(f"tls/localhost:{port}", auth, RouterTls(files.certificate, files.private_key))
+    operator = read_credentials(role_file(tmp_path, "operator"))
+    try:
+        ZenohTransport(f"tls/localhost:{port}", operator, str(files.ca_certificate)).close()
+        with pytest.raises(zenoh.ZError):
+            ZenohTransport(f"tls/127.0.0.1:{port}", operator, str(files.ca_certificate)).close()
+    finally:
+        router.close()

@@ -5,6 +5,10 @@ addresses exist only inside the two namespaces, so nothing the tests send leaves
 takes the link down (routes go with it; TCP connections across it stall, they are not reset) and
 ``heal`` brings it back. ``close`` ends every process started in the hosts, by pid, and deletes the
 namespaces (the veth pair goes with them).
+
+``make_host`` makes one namespace (loopback only) whose ``/etc/hosts`` names loopback as given
+(``ip netns exec`` mounts ``/etc/netns/<namespace>/hosts`` over it): a name such as a Kubernetes
+Service's ``router`` resolves there and nowhere else.
 """
 from __future__ import annotations
 
@@ -86,6 +90,35 @@ def _end(process: subprocess.Popen) -> None:
         process.wait(timeout=10)
     except ProcessLookupError:
         pass
+
+
+@dataclass
+class OneHost:
+    host: Host
+
+    def close(self) -> None:
+        for process in self.host.processes:
+            _end(process)
+        subprocess.run(["ip", "netns", "delete", self.host.namespace], capture_output=True, timeout=30)
+        shutil.rmtree(Path("/etc/netns") / self.host.namespace, ignore_errors=True)
+
+
+def make_host(tag: str, names: Sequence[str]) -> OneHost:
+    """Namespace ``cw<tag>`` with loopback up, where each of ``names`` resolves to 127.0.0.1; skip where
+    it cannot be made."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("network namespaces need root and iproute2")
+    one = OneHost(Host(f"cw{tag}", "lo", "127.0.0.1"))
+    try:
+        etc = Path("/etc/netns") / one.host.namespace
+        etc.mkdir(parents=True, exist_ok=True)
+        (etc / "hosts").write_text("127.0.0.1 localhost " + " ".join(names) + "\n")
+        _ip("netns", "add", one.host.namespace)
+        _ip("-n", one.host.namespace, "link", "set", "lo", "up")
+    except (RuntimeError, OSError) as exc:
+        one.close()
+        pytest.skip(f"cannot make a network namespace here: {exc}")
+    return one
 
 
 def make_two_hosts(tag: str) -> TwoHosts:

@@ -87,3 +87,69 @@ def test_the_routers_own_admin_space_still_answers_its_local_session(tmp_path: P
     with zenoh.open(config) as router:
         replies = [str(r.ok.key_expr) for r in router.get("@/*/router", timeout=5) if r.ok is not None]
         assert replies == [f"@/{router.zid()}/router"]
+
+
+TLS_K8S = ["--listen", "tls/[::]:7447", "--tls-name", "router", "--tls-name", "router.causeway.svc",
+           "--tls-name", "10.0.0.7"]
+
+
+def test_tls_names_make_a_ca_and_a_router_certificate_the_router_config_reads(tmp_path: Path) -> None:
+    from cryptography import x509
+
+    from services.bus.router import ROUTER_COMMON_NAME
+
+    out = tmp_path / "bus"
+    assert cli_main(["bus-secrets", "--run", "k8s", "--out", str(out), "--users-file", "/etc/zenoh/router-users",
+                     "--file-mode", "644", *TLS_K8S]) == 0
+    secrets = out / "secrets"
+    modes = {f.name: f.stat().st_mode & 0o777 for f in secrets.iterdir()}
+    assert modes.pop("bus-ca.key") == 0o600 and set(modes.values()) == {0o644}, "the CA's key stays private"
+    ca = x509.load_pem_x509_certificate((secrets / "bus-ca.pem").read_bytes())
+    router = x509.load_pem_x509_certificate((secrets / "router-tls.pem").read_bytes())
+    router.verify_directly_issued_by(ca)
+    names = router.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert names.get_values_for_type(x509.DNSName) == ["router", "router.causeway.svc"]
+    assert [str(ip) for ip in names.get_values_for_type(x509.IPAddress)] == ["10.0.0.7"]
+    assert router.subject.rfc4514_string() == f"CN={ROUTER_COMMON_NAME}"
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    config = json.loads((secrets / "router.json5").read_text())
+    assert config["listen"]["endpoints"] == ["tls/[::]:7447"]
+    assert config["transport"]["link"]["tls"]["listen_certificate"] == "/etc/zenoh/router-tls.pem"
+    assert config["transport"]["link"]["tls"]["listen_private_key"] == "/etc/zenoh/router-tls.key"
+    assert "BEGIN CERTIFICATE" in (secrets / "router-roots.pem").read_text()
+
+
+def test_mesh_users_and_joins_extend_the_access_control_to_the_run_only(tmp_path: Path) -> None:
+    first = tmp_path / "first"
+    assert cli_main(["bus-secrets", "--run", "mesh", "--out", str(first), *TLS_K8S, "--mesh-user", "router-b"]) == 0
+    joined = json.loads((first / "secrets" / "access-control.json").read_text())
+    assert {"id": "meshed-router-users", "usernames": ["router-b"]} in joined["subjects"]
+    rule = next(r for r in joined["rules"] if r["id"] == "meshed-routers")
+    assert rule["key_exprs"] == ["causeway/mesh/**"] and set(rule["flows"]) == {"ingress", "egress"}
+    assert read_credentials(first / "secrets" / "router-b.credentials").user == "router-b"
+    second = tmp_path / "second"
+    assert cli_main(["bus-secrets", "--run", "mesh", "--out", str(second), "--join", "tls/first.example:7447",
+                     "--join-credentials", str(first / "secrets" / "router-b.credentials"),
+                     "--join-ca", str(first / "secrets" / "bus-ca.pem")]) == 0
+    config = json.loads((second / "secrets" / "router.json5").read_text())
+    assert config["connect"]["endpoints"] == ["tls/first.example:7447"]
+    assert config["transport"]["auth"]["usrpwd"]["user"] == "router-b"
+    assert (second / "secrets" / "router-roots.pem").read_text() == (first / "secrets" / "bus-ca.pem").read_text()
+    assert {"id": "meshed-router-certificates", "cert_common_names": ["causeway-router"]} in \
+        json.loads((second / "secrets" / "access-control.json").read_text())["subjects"]
+    assert config["access_control"]["enabled"] and len(config["access_control"]["policies"]) == 9
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--listen", "tls/[::]:7447"], "has no certificate"),
+    (["--tls-name", "router"], "listens on none"),
+    (["--listen", "tls/[::]:7447", "--tls-name", "bad name"], "expected a DNS name"),
+    (["--mesh-user", "env-worker"], "not a role"),
+    (["--join", "tcp/first:7447", "--join-credentials", "x", "--join-ca", "y"], "use tls/"),
+    (["--join", "tls/first:7447"], "--join needs --join-credentials"),
+])
+def test_it_refuses_a_router_that_could_not_start_or_would_link_in_clear(tmp_path: Path, capsys, args: list[str],
+                                                                         says: str) -> None:
+    with pytest.raises(SystemExit) as refused:
+        cli_main(["bus-secrets", "--run", "mesh", "--out", str(tmp_path / "out"), *args])
+    assert refused.value.code == 2 and says in capsys.readouterr().err
