@@ -45,6 +45,14 @@ In a run of SkiLD (``--method skild``) the env-worker also publishes skills/* an
 queries weights/skild-policy, the graph-evaluator publishes induced/<m>/*, and the policy-learner
 subscribes to skills/* and induced/<m>/* and serves weights/skild-policy (:data:`SKILL_KEYS`).
 
+Identities per instance (``run_roles(..., workers=N)``, the local stack): one user per process, each
+pinned to its own keys. Env-worker ``i`` is the user ``env-worker-i`` and may publish only
+``transitions/w<i>`` (``frames/w<i>``, ``skills/w<i>``), ``stats/env-worker/<i>`` and the token
+``alive/env-worker/<i>``, so no worker can send as another; every other service is its role's user,
+pinned to instance ``0`` (``stats/<service>/0``, ``alive/<service>/0``). With ``workers=0`` (compose and
+Kubernetes, where a service's replicas share one Secret) there is one ``env-worker`` user for every
+replica and the pinning is per role only.
+
 This module is pure: :func:`run_roles` declares, :func:`access_control` renders the router's JSON,
 :func:`new_passwords` draws passwords; files are written by :mod:`services.bus.credentials`.
 """
@@ -107,11 +115,15 @@ def _service(run: str, name: str, *, publish: tuple[str, ...] = (), subscribe: t
                 tokens=(topics.alive(run, name),))
 
 
-def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: bool = False) -> dict[str, Role]:
-    """Every role of run ``run`` whose learner, evaluator and reward use ``method``.
+def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: bool = False,
+              workers: int = 0) -> dict[str, Role]:
+    """Every role of run ``run`` whose learner, evaluator and reward use ``method``, by user name.
 
     ``dashboard_run`` is the run the dashboard shows (``*``: every run on the router; default ``run``).
     ``frames``: the env-workers publish frames, a factor-extractor turns them into transitions.
+    ``workers``: 0, one ``env-worker`` user shared by every replica; N > 0, the users ``env-worker-0`` ..
+    ``env-worker-<N-1>``, each pinned to its own keys, and every other service pinned to instance 0
+    (:func:`pinned`).
     """
     shown = run if dashboard_run is None else dashboard_run
     weights, policy = topics.weights(run, method), topics.weights(run, POLICY_MODEL)
@@ -139,7 +151,40 @@ def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: b
              tokens=(topics.alive(run, "supervisor", "0"),)),
         Role("operator", publish=(topics.control(run),), subscribe=(topics.stats(run),), watch=(topics.alive(run),)),
     )
-    return {role.name: _with_skills(role, run, method) for role in roles}
+    roles = tuple(_with_skills(role, run, method) for role in roles)
+    if workers < 0:
+        raise ValueError(f"workers must be >= 0, got {workers}")
+    if workers:
+        roles = tuple(inst for role in roles for inst in
+                      ([pinned(role, run, i) for i in range(workers)] if role.name == "env-worker" else [pinned(role, run)]))
+    return {role.name: role for role in roles}
+
+
+def instance_user(service: str, index: int) -> str:
+    """The bus user of env-worker ``index`` in a run with identities per instance (``env-worker-3``);
+    also the supervisor's name for that process and the stem of its credentials file."""
+    return f"{service}-{index}"
+
+
+def pinned(role: Role, run: str, index: int | None = None) -> Role:
+    """``role`` narrowed to one instance: its stats beats and liveliness token under its instance id
+    (``index``, or 0 for a service of one process); an env-worker's also its own ``transitions``,
+    ``frames`` and ``skills`` keys (worker id ``w<index>``, as ``EnvWorkerCore.worker_id``), and the user
+    :func:`instance_user`. Keys the role shares with its peers (``env/spec``, the policy) stay as they are."""
+    instance = str(index or 0)
+    narrow = {topics.stats(run, role.name): topics.stats(run, role.name, instance),
+              topics.alive(run, role.name): topics.alive(run, role.name, instance)}
+    name = role.name
+    if index is not None:
+        worker = f"w{index}"
+        narrow.update({topics.transitions(run): topics.transitions(run, worker),
+                       topics.frames(run): topics.frames(run, worker), topics.skills(run): topics.skills(run, worker)})
+        name = instance_user(role.name, index)
+
+    def own(keys: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(narrow.get(key, key) for key in keys)
+
+    return dataclasses.replace(role, name=name, publish=own(role.publish), serve=own(role.serve), tokens=own(role.tokens))
 
 
 SKILL_KEYS = {
@@ -188,14 +233,20 @@ def _allowed_messages(role: Role, roles: dict[str, Role]) -> dict[tuple[str, str
 
 def access_control(roles: dict[str, Role]) -> dict[str, Any]:
     """The router's ``access_control`` configuration: deny by default, each role's capabilities allowed
-    for the user of the same name."""
-    rules, policies = [], []
+    for the user of the same name. A rule several users need (the env-workers' shared keys) is written
+    once and named by each of their policies."""
+    rules: list[dict[str, Any]] = []
+    policies = []
+    ids_of: dict[tuple[str, str, tuple[str, ...]], str] = {}
     for role in roles.values():
         ids = []
         for (flow, message), keys in sorted(_allowed_messages(role, roles).items()):
-            ids.append(f"{role.name}-{flow}-{message}")
-            rules.append({"id": ids[-1], "permission": "allow", "flows": [flow], "messages": [message],
-                          "key_exprs": sorted(keys)})
+            rule = (flow, message, tuple(sorted(keys)))
+            if rule not in ids_of:
+                ids_of[rule] = f"{role.name}-{flow}-{message}"
+                rules.append({"id": ids_of[rule], "permission": "allow", "flows": [flow], "messages": [message],
+                              "key_exprs": list(rule[2])})
+            ids.append(ids_of[rule])
         policies.append({"id": role.name, "rules": ids, "subjects": [role.name]})
     subjects = [{"id": role.name, "usernames": [role.name]} for role in roles.values()]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,

@@ -62,8 +62,9 @@ class GraphEvaluatorCore:
         self.model_config = ""
         self.weights: Weights | None = None
         self.layout = FactorLayout.from_spec(spec)
-        self.versions = VersionGate()
-        """The learner's versions taken so far: each must move forward by a bounded step."""
+        self.versions = VersionGate(known=cfg.known_version)
+        """The learner's versions taken so far: each must move forward by a bounded step, the first from
+        the version known published (the supervisor's, or this evaluator's checkpoint's)."""
         self.evaluated_version = -1
         self.evaluated_updates = 0
         self.cmi_ema: np.ndarray | None = None
@@ -293,6 +294,7 @@ class GraphEvaluatorCore:
         check_fingerprint(saved, self.fingerprint(), path)
         self.heldout.load_state_dict(saved["heldout"])
         self.evaluated_version = int(saved["evaluated_version"])
+        self.versions.know(self.evaluated_version)
         self.evaluated_updates = int(saved.get("evaluated_updates", 0))
         if "cmi_ema" in saved:
             self.cmi_ema = saved["cmi_ema"].numpy()

@@ -43,7 +43,7 @@ class IntrinsicRewardCore:
         self.weights_version = 0
         self.weights_env_steps = 0
         self.graph_version = -1
-        self.versions = VersionGate()
+        self.versions = VersionGate(known=cfg.known_version)
         """The learner's weights versions and the evaluator's report versions taken so far."""
         n = spec.num_factors
         self.parents = np.ones((n, n + 1), dtype=bool)

@@ -130,7 +130,7 @@ class PolicyLearnerCore:
         self.lags: Counter[str] = Counter()
         """Received batches by policy lag: ``"0"`` .. ``str(max_policy_lag)``, ``"over"`` (stale), ``"future"``."""
         self.graph_version = -1
-        self.graph_versions = VersionGate()
+        self.graph_versions = VersionGate(known=cfg.known_version)
         """The evaluator's report versions taken so far (ProtocolError for a jump past the bound)."""
         self.kept_factors: tuple[int, ...] | None = None
         prefixes = tuple(p.strip() for p in cfg.hide.split(",") if p.strip())

@@ -32,35 +32,53 @@ miss this many publications in a row (hours at a publication per second) to refu
 class VersionGate:
     """The last accepted version of each publisher; a new version must be newer, by at most ``max_step``.
 
-    A consumer's first version from a publisher is taken as it is (a consumer may join a run at any
-    version); from then on a jump beyond ``max_step`` is refused (``ProtocolError('inconsistent')``)
-    and the last accepted version stays, so the real publisher's next versions are still taken."""
+    A publisher's *first* version is bounded too: at most ``max_step`` above ``known``, a version this
+    consumer knows was published without taking the publisher's word for it: its own checkpoint's last
+    accepted version (:meth:`know`), or the one the supervisor read for it when it started it
+    (``known_version`` of its configuration: the dynamics-learner's record of its published versions,
+    which it writes before it publishes, or the policy-learner's last beat). Versions only grow (a
+    restarted learner continues above any it published), so a real first version is never below
+    ``known``, and a consumer that joins a run within ``max_step`` publications of that is not refused;
+    a forged 2**62 is. A refused version is ``ProtocolError('inconsistent')``; the last accepted version
+    stays, so the real publisher's next versions are still taken."""
 
-    def __init__(self, max_step: int = MAX_VERSION_STEP) -> None:
+    def __init__(self, max_step: int = MAX_VERSION_STEP, known: int = 0) -> None:
         if max_step < 1:
             raise ValueError(f"max_step must be >= 1, got {max_step}")
+        if known < 0:
+            raise ValueError(f"known must be >= 0, got {known}")
         self.max_step = max_step
+        self.known = known
         self.last: dict[str, int] = {}
 
-    def newer(self, publisher: str, version: int) -> bool:
+    def know(self, version: int) -> None:
+        """Record ``version`` as known published (a checkpoint's), raising the bound on first versions."""
+        self.known = max(self.known, int(version))
+
+    def newer(self, publisher: str, version: int, ceiling: int | None = None) -> bool:
         """True for a version above the last accepted one (within the bound; not yet accepted: call
         :meth:`accept` once the message is used), False for a repeat or an older one (ignore it).
-        ``ProtocolError`` for a jump beyond the bound."""
+        ``ProtocolError`` for a jump beyond the bound, from the last accepted version or, for the
+        publisher's first, from ``known``, and for a version above ``ceiling``, where the consumer knows
+        the highest one published (the learner its own, the supervisor the learner's record)."""
+        if ceiling is not None and version > ceiling:
+            raise ProtocolError("inconsistent", f"{publisher} version {version} was never published (the highest "
+                                                f"published is {ceiling})")
         last = self.last.get(publisher)
-        if last is None:
-            return True
-        if version > last + self.max_step:
+        base = self.known if last is None else last
+        if version > base + self.max_step:
+            since = f"the last accepted {last}" if last is not None else f"the {base} known published (first version)"
             raise ProtocolError("inconsistent", f"{publisher} version {version} jumps more than {self.max_step} "
-                                                f"past the last accepted {last}")
-        return version > last
+                                                f"past {since}")
+        return last is None or version > last
 
     def accept(self, publisher: str, version: int) -> None:
         """Record ``version`` as the publisher's last accepted one."""
         self.last[publisher] = version
 
-    def take(self, publisher: str, version: int) -> bool:
+    def take(self, publisher: str, version: int, ceiling: int | None = None) -> bool:
         """:meth:`newer`, and :meth:`accept` when it is: for a message used as soon as it is checked."""
-        if not self.newer(publisher, version):
+        if not self.newer(publisher, version, ceiling):
             return False
         self.accept(publisher, version)
         return True

@@ -11,6 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from services.runtime.checkpoint import CONFIG_ERROR_EXIT
 
@@ -35,10 +36,12 @@ class ManagedProcess:
     process: subprocess.Popen | None = None
     next_start: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
+    refresh: Callable[[], dict[str, str]] | None = None
+    """Environment read afresh at each (re)start, over ``environ`` (the versions known published then)."""
 
     def start(self) -> None:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        env = {**os.environ, **self.environ, "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, **self.environ, **(self.refresh() if self.refresh else {}), "PYTHONUNBUFFERED": "1"}
         with open(self.log_path, "ab") as out:
             self.process = subprocess.Popen([sys.executable, "-m", self.module], env=env, stdout=out,
                                             stderr=subprocess.STDOUT, start_new_session=True,

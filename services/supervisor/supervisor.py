@@ -29,6 +29,7 @@ from proto.messages import Control, GraphReport, LocalGraphReport, ServiceStats
 from services.bus.credentials import read_credentials
 from services.bus.router import start_router, wait_for_router
 from services.bus.zenoh_transport import ZenohTransport
+from services.dynamics_learner.core import DynamicsLearnerCore
 from services.runtime.accept import VersionGate
 from services.runtime.config import to_environ, write_config
 from services.runtime.device import resolve_device
@@ -42,6 +43,8 @@ from services.supervisor.wiring import (MODULES, check_ports_free, credentials_p
                                        prepare_bus_auth, resolve, service_configs, worker_config)
 
 log = logging.getLogger("supervisor")
+KNOWN_VERSION_ENV = "CAUSEWAY_KNOWN_VERSION"
+"""The environment variable of every service's ``known_version`` (``services.runtime.config``)."""
 
 
 class Supervisor:
@@ -69,7 +72,6 @@ class Supervisor:
         self._own_stop = -1.0
         self.pending_scale: queue.Queue[str] = queue.Queue()
         self.retired: list[ManagedProcess] = []
-        self.next_worker_index = 0
         self.failure = ""
         self.policy_timeline: list[tuple[float, str, str, float]] = []
         """(seconds since start, service, instance, policy version) whenever a version changes."""
@@ -81,17 +83,43 @@ class Supervisor:
         return f"http://127.0.0.1:{port}/?run={self.cfg.run_id}" if port else None
 
     def process(self, name: str, module: str, service_cfg: object) -> ManagedProcess:
-        proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log")
+        policy = module == MODULES["env-worker"]
+        proc = ManagedProcess(name, module, to_environ(service_cfg), self.run_dir / "logs" / f"{name}.log",
+                              refresh=lambda: {KNOWN_VERSION_ENV: str(self.known_version(policy))})
         self.processes[name] = proc
         self.started.add(name)
         return proc
 
-    def started_it(self, stats: ServiceStats) -> bool:
+    def started_it(self, stats: ServiceStats, key: str) -> bool:
         """Whether ``stats`` names a process this supervisor started (env-worker i is instance i, every
-        other service instance 0): only those count in the run's progress and budgets."""
+        other service instance 0), under that process's own key (``stats/<service>/<instance>``): only
+        those count in the run's progress and budgets. With ``--bus-auth`` the router lets only that
+        process's user publish on its key (:func:`services.bus.roles.pinned`), so a beat that counts is
+        the process's own; a beat naming another process than its key is refused here."""
+        if key.split("/")[-2:] != [stats.service, stats.instance]:
+            return False
         if stats.service == "env-worker":
             return f"env-worker-{stats.instance}" in self.started
         return stats.service in self.started and stats.instance == "0"
+
+    def published_version(self) -> int:
+        """The dynamics-learner's record of the weights versions it published (0 before any): it writes
+        it before each publication (``DynamicsLearnerCore.record_version``), on disk, where nothing on the
+        bus can forge it. No report can be about a version above it."""
+        path = DynamicsLearnerCore.version_path(self.run_dir / "checkpoints" / "dynamics-learner-0.pt")
+        try:
+            return max(int(json.loads(path.read_text())["version"]), 0)
+        except (OSError, ValueError, KeyError, TypeError):
+            return 0
+
+    def known_version(self, policy: bool) -> int:
+        """The version a process started now is told is known published (``known_version``, which bounds the
+        first version it takes): for an env-worker, the newest policy version the policy-learner's beats
+        gave; for every other service, :meth:`published_version`."""
+        if not policy:
+            return self.published_version()
+        beat = self.progress.stats.get(("policy-learner", "0"))
+        return max(int(beat.values.get("policy_version", 0)), 0) if beat is not None else 0
 
     def preflight(self) -> None:
         """``ValueError`` if the run cannot start here: ``--device cuda`` without a CUDA device (or with a
@@ -139,23 +167,37 @@ class Supervisor:
     def worker_indices(self) -> list[int]:
         return sorted(int(name.rsplit("-", 1)[1]) for name in self.processes if name.startswith("env-worker-"))
 
-    def scale_workers(self, count: int) -> None:
-        """Add workers (new indices, so new seeds) or retire the newest ones; nothing else restarts.
+    def free_worker_index(self) -> int | None:
+        """The lowest worker index below ``--max-workers`` that no running or still-stopping worker holds
+        (None if every one is held). Indices are bus identities drawn before the router started
+        (:func:`~services.supervisor.wiring.prepare_bus_auth`), so a new worker reuses a retired one's;
+        its seeds still differ, since each start of an index is a new life (``next_generation``)."""
+        self.retired = [proc for proc in self.retired if proc.alive()]
+        held = set(self.worker_indices()) | {int(proc.name.rsplit("-", 1)[1]) for proc in self.retired}
+        return next((i for i in range(self.cfg.max_workers) if i not in held), None)
 
-        A retired worker gets SIGTERM, finishes and publishes the batch it is collecting, and exits."""
+    def scale_workers(self, count: int) -> None:
+        """Add workers (free indices below ``--max-workers``, new lives so new seeds) or retire the newest
+        ones; nothing else restarts.
+
+        A retired worker gets SIGTERM, finishes and publishes the batch it is collecting, and exits; until
+        it has, its index (its bus identity) is not given to a new worker."""
         if count < 0:
             raise ValueError(f"cannot scale env-worker to {count}")
         current = self.worker_indices()
         for _ in range(count - len(current)):
-            self.next_worker_index = max(self.next_worker_index, max(current, default=-1) + 1)
-            self.add_worker(self.next_worker_index)
-            self.next_worker_index += 1
+            index = self.free_worker_index()
+            if index is None:
+                log.warning("env-worker: every index below --max-workers %d is held (retired workers still "
+                            "stopping); scale again once they have exited", self.cfg.max_workers)
+                break
+            self.add_worker(index)
         for index in sorted(current, reverse=True)[: max(len(current) - count, 0)]:
             proc = self.processes.pop(f"env-worker-{index}")
             proc.terminate()
             self.retired.append(proc)
         self._write_process_table()
-        log.warning("env-worker scaled from %d to %d", len(current), count)
+        log.warning("env-worker scaled from %d to %d", len(current), len(self.worker_indices()))
 
     def _on_control(self, key: str, payload: bytes) -> None:
         try:
@@ -188,7 +230,7 @@ class Supervisor:
         except ProtocolError:
             log.warning("bad stats message on %s", key)
             return
-        if not self.started_it(stats):
+        if not self.started_it(stats, key):
             if (stats.service, stats.instance) not in self.strangers and len(self.strangers) < 100:
                 self.strangers.add((stats.service, stats.instance))
                 log.warning("stats beats from %s/%s, which this run did not start: ignored", stats.service, stats.instance)
@@ -210,7 +252,7 @@ class Supervisor:
     def _on_graph(self, key: str, payload: bytes) -> None:
         try:
             report = decode(payload, GraphReport)
-            fresh = self.report_versions.take(f"graph/{report.kind}", report.weights_version)
+            fresh = self.report_versions.take(f"graph/{report.kind}", report.weights_version, self.published_version())
         except ProtocolError as exc:
             log.warning("bad graph report on %s: %s", key, exc)
             return
@@ -226,7 +268,7 @@ class Supervisor:
     def _on_local(self, key: str, payload: bytes) -> None:
         try:
             report = decode(payload, LocalGraphReport)
-            fresh = self.report_versions.take(f"local/{report.kind}", report.weights_version)
+            fresh = self.report_versions.take(f"local/{report.kind}", report.weights_version, self.published_version())
         except ProtocolError as exc:
             log.warning("bad local-graph report on %s: %s", key, exc)
             return

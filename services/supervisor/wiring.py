@@ -20,7 +20,7 @@ from causal.methods import get_method
 from envs.registry import EnvEntry, check_options, env_entry, make_env
 from proto.messages import EnvSpec
 from services.bus.credentials import RouterAuth, role_file, write_run_secrets
-from services.bus.roles import access_control, new_passwords, run_roles
+from services.bus.roles import access_control, instance_user, new_passwords, run_roles
 from services.bus.router import free_tcp_port
 from services.dashboard.config import DashboardConfig
 from services.env_worker.config import EnvWorkerConfig
@@ -173,7 +173,8 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
         "env-worker": worker_config(cfg, connect, worker_index),
     }
     configs["factor-extractor"] = dataclasses.replace(cfg.extractor, **common, metrics_port=port(6))
-    return {name: dataclasses.replace(c, bus_credentials=credentials_path(cfg, name)) for name, c in configs.items()}
+    return {name: c if name == "env-worker" else dataclasses.replace(c, bus_credentials=credentials_path(cfg, name))
+            for name, c in configs.items()}
 
 
 def credentials_path(cfg: RunConfig, role: str) -> str:
@@ -183,11 +184,17 @@ def credentials_path(cfg: RunConfig, role: str) -> str:
 
 
 def prepare_bus_auth(cfg: RunConfig) -> RouterAuth | None:
-    """With ``--bus-auth``: fresh credentials for every role of the run under ``<run_dir>/secrets`` and
-    the router's access control (:mod:`services.bus.roles`); None without."""
+    """With ``--bus-auth``: fresh credentials for every process of the run under ``<run_dir>/secrets`` and
+    the router's access control (:mod:`services.bus.roles`); None without.
+
+    One user per process, each pinned to its own keys: every service, and env-workers ``0`` ..
+    ``--max-workers - 1``, all drawn now. eclipse-zenoh 1.10.2's router cannot reload its access control or
+    its users while it runs (a session's configuration is fixed when it opens; restarting the router would
+    drop every link), so a worker a scale request adds later takes one of these pre-drawn identities
+    (:meth:`Supervisor.free_worker_index`)."""
     if not cfg.bus_auth:
         return None
-    roles = run_roles(cfg.run_id, cfg.method, frames=cfg.worker.publish_frames)
+    roles = run_roles(cfg.run_id, cfg.method, frames=cfg.worker.publish_frames, workers=cfg.max_workers)
     return write_run_secrets(cfg.run_dir, new_passwords(tuple(roles)), access_control(roles))
 
 
@@ -209,7 +216,7 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
                                follow_policy=cfg.collector != "random", skild=skill_discovery(cfg),
                                local_graphs=scores_local_graphs(cfg) or (skill_discovery(cfg) and
                                                                          cfg.policy.skild_graphs == "true"),
-                               bus_credentials=credentials_path(cfg, "env-worker"))
+                               bus_credentials=credentials_path(cfg, instance_user("env-worker", index)))
 
 
 def scores_local_graphs(cfg: RunConfig) -> bool:

@@ -176,3 +176,38 @@ def test_every_service_of_the_stack_uses_only_what_its_role_allows(stack_calls) 
     assert set(stack_calls) >= set(roles) - {"supervisor", "operator"}
     assert ("publish", topics.graph(RUN, "cdl")) in stack_calls["graph-evaluator"]
     assert not denied(stack_calls, roles)
+
+
+def test_every_call_of_the_stack_fits_the_identities_per_instance_too(stack_calls) -> None:
+    """The local stack's users (one per process): its one worker is env-worker-0, every other service
+    instance 0; every call the stack made is still allowed."""
+    roles = run_roles(RUN, "cdl", workers=2)
+    calls = {("env-worker-0" if role == "env-worker" else role): made for role, made in stack_calls.items()}
+    assert not denied(calls, roles)
+
+
+def test_identities_per_instance_pin_each_process_to_its_own_keys() -> None:
+    roles = run_roles(RUN, "skild", workers=3)
+    assert "env-worker" not in roles and {f"env-worker-{i}" for i in range(3)} <= set(roles)
+    owners = {key: sorted(r.name for r in roles.values() if allowed(r, "publish", key))
+              for key in (topics.transitions(RUN, "w1"), topics.skills(RUN, "w1"), topics.stats(RUN, "env-worker", "1"),
+                          topics.stats(RUN, "dynamics-learner", "0"), topics.stats(RUN, "dynamics-learner", "1"),
+                          topics.transitions(RUN, "w3"), topics.env_spec(RUN))}
+    assert owners == {topics.transitions(RUN, "w1"): ["env-worker-1"], topics.skills(RUN, "w1"): ["env-worker-1"],
+                      topics.stats(RUN, "env-worker", "1"): ["env-worker-1"],
+                      topics.stats(RUN, "dynamics-learner", "0"): ["dynamics-learner"],
+                      topics.stats(RUN, "dynamics-learner", "1"): [], topics.transitions(RUN, "w3"): [],
+                      topics.env_spec(RUN): ["env-worker-0", "env-worker-1", "env-worker-2"]}
+    tokens = [r.name for r in roles.values() if allowed(r, "tokens", topics.alive(RUN, "env-worker", "2"))]
+    assert tokens == ["env-worker-2"]
+    frames = run_roles(RUN, "cdl", frames=True, workers=2)
+    assert [r.name for r in frames.values() if allowed(r, "publish", topics.frames(RUN, "w1"))] == ["env-worker-1"]
+    roles = run_roles(RUN, "cdl", workers=3)
+    acl = access_control(roles)
+    assert {u for s in acl["subjects"] for u in s["usernames"]} == set(roles)
+    shared = [rule for rule in acl["rules"] if rule["key_exprs"] == [topics.weights(RUN, "policy")]
+              and rule["flows"] == ["ingress"] and rule["messages"] == ["query"]]
+    assert len(shared) == 1  # one rule, named by every worker's policy
+    assert sum(shared[0]["id"] in p["rules"] for p in acl["policies"]) == 3
+    with pytest.raises(ValueError):
+        run_roles(RUN, "cdl", workers=-1)

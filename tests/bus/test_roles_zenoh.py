@@ -134,3 +134,85 @@ def test_a_forgery_by_the_wrong_role_never_arrives(router, forger: str, key: str
     owning.publish(key, b"owner")
     wait_for(lambda: b"owner" in read, 30, "the owner's message")
     assert b"forged" not in read, read
+
+
+@pytest.fixture
+def instance_router(tmp_path: Path):
+    """The local stack's router: a user per process (env-workers 0-2), each pinned to its own keys."""
+    roles = run_roles(RUN, "skild", workers=3)
+    auth = write_run_secrets(tmp_path, new_passwords(tuple(roles)), access_control(roles))
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    session = start_router(endpoint, auth)
+    opened: list[ZenohTransport] = []
+
+    def client(user: str) -> ZenohTransport:
+        opened.append(ZenohTransport(endpoint, read_credentials(role_file(tmp_path, user))))
+        return opened[-1]
+
+    yield endpoint, client, tmp_path
+    for transport in opened:
+        transport.close()
+    session.close()
+
+
+INSTANCE_FORGERIES = [
+    # (forger, key, its rightful publisher, a subscriber of the key): one process sending as another
+    ("env-worker-0", topics.transitions(RUN, "w1"), "env-worker-1", "dynamics-learner"),
+    ("env-worker-0", topics.stats(RUN, "env-worker", "1"), "env-worker-1", "supervisor"),
+    ("env-worker-2", topics.skills(RUN, "w1"), "env-worker-1", "policy-learner"),
+    ("env-worker-2", topics.stats(RUN, "dynamics-learner", "0"), "dynamics-learner", "supervisor"),
+    ("dynamics-learner", topics.stats(RUN, "graph-evaluator", "0"), "graph-evaluator", "operator"),
+]
+
+
+@pytest.mark.parametrize("forger,key,owner,reader", INSTANCE_FORGERIES,
+                         ids=[f"{f}->{k.split('/', 2)[2]}" for f, k, _, _ in INSTANCE_FORGERIES])
+def test_a_process_cannot_publish_on_another_instances_keys(instance_router, forger: str, key: str, owner: str,
+                                                           reader: str) -> None:
+    """Worker A's credentials cannot publish on worker B's transitions, skills or stats keys, nor one service
+    on another's beat; the forger's own beat, sent after the forgery on the same link, arrives, and so does
+    the owner's message sent after that."""
+    _, client, _ = instance_router
+    read, synced = [], []
+    instance = forger.rsplit("-", 1)[1] if forger.startswith("env-worker-") else "0"
+    sync = topics.stats(RUN, forger.removesuffix(f"-{instance}") if forger.startswith("env-worker-") else forger,
+                        instance)
+    client(reader).subscribe(key, lambda k, p: read.append(p))
+    client("supervisor").subscribe(sync, lambda k, p: synced.append(p))
+    forging, owning = client(forger), client(owner)
+    wait_for(lambda: owning.publish(key, b"warm-up") or read, 30, "the owner's message")
+    forging.publish(key, b"forged")
+    forging.publish(sync, b"sync")
+    wait_for(lambda: b"sync" in synced, 30, "the forger's own beat")
+    owning.publish(key, b"owner")
+    wait_for(lambda: b"owner" in read, 30, "the owner's message")
+    assert b"forged" not in read, read
+
+
+def test_a_worker_keeps_its_own_keys_and_the_keys_all_workers_share(instance_router) -> None:
+    """What pinning leaves each worker: its transitions and beat, its liveliness token, the env spec it
+    serves and the policy it reads. No role-level env-worker user exists in such a run."""
+    endpoint, client, secrets = instance_router
+    assert not role_file(secrets, "env-worker").exists()
+    learner, operator, policy = client("dynamics-learner"), client("operator"), client("policy-learner")
+    batches, beats = [], []
+    learner.subscribe(topics.transitions(RUN), lambda k, p: batches.append(k))
+    operator.subscribe(topics.stats(RUN), lambda k, p: beats.append(k))
+    served = policy.serve_latest(topics.weights(RUN, "policy"))
+    served.set(b"policy")
+    workers = [client(f"env-worker-{i}") for i in range(3)]
+    workers[2].serve_latest(topics.env_spec(RUN)).set(b"spec")
+    workers[0].declare_token(topics.alive(RUN, "env-worker", "2"))  # worker 2's: never declared
+    for i, worker in enumerate(workers[:2]):
+        worker.declare_token(topics.alive(RUN, "env-worker", str(i)))
+        wait_for(lambda: worker.publish(topics.transitions(RUN, f"w{i}"), b"b") or topics.transitions(RUN, f"w{i}") in batches,
+                 30, f"worker {i}'s batch")
+        wait_for(lambda: worker.publish(topics.stats(RUN, "env-worker", str(i)), b"s", reliable=False)
+                 or topics.stats(RUN, "env-worker", str(i)) in beats, 30, f"worker {i}'s beat")
+        wait_for(lambda: worker.query(topics.weights(RUN, "policy")) == [(topics.weights(RUN, "policy"), b"policy")],
+                 30, "the policy")
+    wait_for(lambda: learner.query(topics.env_spec(RUN)) == [(topics.env_spec(RUN), b"spec")], 30, "the env spec")
+    tokens = [topics.alive(RUN, "env-worker", str(i)) for i in range(3)]
+    wait_for(lambda: sorted(operator.alive(topics.alive(RUN))) == tokens[:2], 30, "workers 0 and 1's own tokens")
+    workers[2].declare_token(tokens[2])
+    wait_for(lambda: sorted(operator.alive(topics.alive(RUN))) == tokens, 30, "worker 2's own token")

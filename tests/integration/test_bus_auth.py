@@ -1,7 +1,8 @@
-"""``causeway run --bus-auth`` end to end on loopback: every service connects with its role's
-credentials and the run reaches graph reports; an anonymous client is refused; a stop forged with an
-env-worker's credentials does not stop the run; the operator commands, with the credentials of the
-run directory, see the run and stop it.
+"""``causeway run --bus-auth`` end to end on loopback: every process connects with its own credentials
+and the run reaches graph reports; an anonymous client is refused; a stop forged with an env-worker's
+credentials does not stop the run, nor do worker 0's credentials send worker 1's beats (forged ones never
+reach a reader, and the summary counts none); the operator commands, with the credentials of the run
+directory, see the run and stop it.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import zenoh
 
 from proto import topics
 from proto.codec import decode, encode
-from proto.messages import Control, GraphReport
+from proto.messages import Control, GraphReport, ServiceStats
 from services.bus.credentials import read_credentials, role_file
 from services.bus.router import free_tcp_port
 from services.bus.zenoh_transport import ZenohTransport
@@ -49,7 +50,7 @@ def test_a_run_with_roles_learns_refuses_strangers_and_forgeries(tmp_path: Path)
     connect = f"tcp/127.0.0.1:{port}"
     stack = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "run", "--bus-auth", "true", "--graph", "collider", "--num-objects", "3",
-         "--max-seconds", "600", "--router-port", str(port), "--metrics-base-port", "0", "--run-dir", str(run_dir),
+         "--max-seconds", "600", "--workers", "2", "--max-workers", "4", "--router-port", str(port), "--metrics-base-port", "0", "--run-dir", str(run_dir),
          "--evaluator-min-interval-s", "1", "--learner-publish-every-s", "1", "--progress", "false",
          "--worker-max-steps-per-second", "1000", "--dashboard-port", str(page), "--evaluate", "false"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -62,10 +63,21 @@ def test_a_run_with_roles_learns_refuses_strangers_and_forgeries(tmp_path: Path)
         with ZenohTransport(connect, read_credentials(role_file(run_dir, "dashboard"))) as watcher:
             watcher.subscribe(topics.graph("run"), lambda k, p: reports.append(decode(p, GraphReport)))
             wait_for(lambda: reports, 300, "a graph report")
-            with ZenohTransport(connect, read_credentials(role_file(run_dir, "env-worker"))) as worker:
+            beats: list[tuple[str, ServiceStats]] = []
+            with ZenohTransport(connect, read_credentials(role_file(run_dir, "operator"))) as operator, \
+                    ZenohTransport(connect, read_credentials(role_file(run_dir, "env-worker-0"))) as worker:
+                operator.subscribe(topics.stats("run", "env-worker"), lambda k, p: beats.append((k, decode(p, ServiceStats))))
                 worker.publish(topics.control("run", "all"), encode(Control("stop", issued_at=time.time())))
-            seen = len(reports)
-            wait_for(lambda: len(reports) > seen + 1, 300, "graph reports after the forged stop")
+                forged = encode(ServiceStats(service="env-worker", instance="1", values={"env_steps": 1e12}, timestamp=time.time()))
+                for _ in range(20):  # worker 1's key (refused by the router), then worker 0's own (ignored by the supervisor)
+                    worker.publish(topics.stats("run", "env-worker", "1"), forged)
+                    worker.publish(topics.stats("run", "env-worker", "0"), forged)
+                    time.sleep(0.1)
+                seen = len(reports)
+                wait_for(lambda: len(reports) > seen + 1, 300, "graph reports after the forged stop and beats")
+                ones = [s for k, s in beats if k == topics.stats("run", "env-worker", "1")]
+                assert ones and all(s.values["env_steps"] < 1e12 for s in ones)  # worker 1's own beats only
+                assert any(s.values["env_steps"] == 1e12 for k, s in beats if k.endswith("/0"))  # the other reached us
         assert stack.poll() is None
         wait_for(lambda: dashboard_graph(page), 120, "the dashboard's graph")  # its role reads graphs
         status = causeway("status", "--run-dir", str(run_dir), "--json")
@@ -84,3 +96,4 @@ def test_a_run_with_roles_learns_refuses_strangers_and_forgeries(tmp_path: Path)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stopped_because"] == "stopped by an operator"
     assert summary["restarts"] == 0 and 0.0 <= summary["f1"] <= 1.0
+    assert 0 < summary["env_steps"] < 1e12  # no forged beat counted

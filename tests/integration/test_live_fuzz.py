@@ -50,12 +50,14 @@ def bases(run_id: str) -> dict[str, tuple[str, bytes]]:
     scored = ScoredBatch(transitions=batch, intrinsic_reward=np.zeros(len(batch), np.float32), reward_kind="preddiff",
                          weights_version=0)
     stats = ServiceStats(service="env-worker", instance="fuzz", values={"env_steps": 1.0})
-    return {topics.transitions(run_id, "w99"): ("env-worker", encode(batch)),
-            topics.scored(run_id, "w99"): ("intrinsic-reward", encode(scored)),
+    # A local run has a bus user per process: env-worker 63 (of --max-workers 64) is one no process of the
+    # run uses, so its keys are a fuzzer's own and no real worker's beats or batches are overwritten.
+    return {topics.transitions(run_id, "w63"): ("env-worker-63", encode(batch)),
+            topics.scored(run_id, "w63"): ("intrinsic-reward", encode(scored)),
             topics.weights(run_id, "cdl"): ("dynamics-learner", b""),
             topics.weights(run_id, "policy"): ("policy-learner", b""),
             topics.graph(run_id, "cdl"): ("graph-evaluator", encode(report)),
-            topics.stats(run_id, "env-worker", "fuzz"): ("env-worker", encode(stats)),
+            topics.stats(run_id, "env-worker", "63"): ("env-worker-63", encode(stats)),
             topics.control(run_id, "all"): ("operator", encode(Control(command="checkpoint")))}
 
 
