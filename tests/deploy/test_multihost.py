@@ -229,7 +229,8 @@ def test_with_roles_the_tls_routers_refuse_strangers_and_wrong_roles(secured: tu
     sent = [_result(hosts.a, put, 60)["sent"] for put in puts]
     assert min(sent) > 0, sent
     payloads = _result(hosts.b, watcher, 60)["payloads"]
-    _record("tls_link_refusals", {"opened": opened, "stops_received_on_b": payloads})
+    _record("tls_link_refusals", {"opened": opened, "stops_received_on_b": payloads,
+                                  "stops_sent_from_a": {"stop-by-env-worker": sent[0], "stop-by-operator": sent[1]}})
     assert set(payloads) == {"stop-by-operator"}, payloads  # the env-worker's stop never crossed
 
 
