@@ -152,7 +152,10 @@ def _tls_settings(args: argparse.Namespace, directory: Path) -> dict[str, object
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    listen = _listen_endpoints(Path(args.router_config), args.listen)
+    try:
+        listen = _listen_endpoints(Path(args.router_config), args.listen)
+    except Exception as exc:  # zenoh.ZError: a missing or malformed --router-config
+        parser.error(f"--router-config {args.router_config}: {exc}")
     _check(parser, args, listen)
     try:
         topics.alive(args.run)
