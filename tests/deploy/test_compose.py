@@ -294,3 +294,41 @@ def test_make_generates_a_private_grafana_password_once(tmp_path: Path) -> None:
     subprocess.run(["make", "-s", "-C", str(REPO), f"GRAFANA_SECRET={other}", str(other)], check=True,
                    capture_output=True, timeout=60)
     assert other.read_text().strip() != first
+
+
+MESH_OVERRIDE = "deploy/compose.mesh.yaml"
+"""Meshed routers from a compose host: the router's certificate, the CAs it trusts, a port for routers."""
+
+
+@integration
+def test_the_mesh_override_mounts_what_bus_secrets_writes_for_a_tls_router(tmp_path: Path) -> None:
+    import re
+    import shlex
+
+    from services.cli import main as cli_main
+
+    documented = next(line for line in (REPO / MESH_OVERRIDE).read_text().splitlines() if "causeway bus-secrets" in line)
+    optional = re.compile(r"\[(--[^\]]*)\]")  # [--mesh-user router-b]: taken
+    args = shlex.split(optional.sub(r"\1", documented.split("causeway ", 1)[1].replace("HOST_NAME", "first.example")))
+    args[args.index("--out") + 1] = str(tmp_path / "deploy")
+    assert cli_main(args + ["--router-config", str(REPO / "deploy" / "zenoh" / "router.json5")]) == 0
+    generated = tmp_path / "deploy" / "secrets"
+    result = subprocess.run([require_tool("docker-compose"), "-f", "compose.yaml", "-f", MESH_OVERRIDE, "config"],
+                            cwd=REPO, capture_output=True, text=True, timeout=60,
+                            env={k: v for k, v in os.environ.items() if not k.startswith(("CAUSEWAY_", "MESH_"))})
+    assert result.returncode == 0, result.stderr
+    model = load_yaml(result.stdout)
+    router = model["services"]["router"]
+    targets = {s["source"]: s["target"] for s in router["secrets"]}
+    assert {"router.json5", "causeway-router-users"} <= set(targets.values()), "the base secrets stay"
+    for name, secret in model["secrets"].items():
+        if name.startswith("bus-router"):
+            assert (generated / Path(secret["file"]).name).is_file(), name
+    config = json.loads((generated / "router.json5").read_text())
+    for key in ("listen_certificate", "listen_private_key", "root_ca_certificate"):
+        path = config["transport"]["link"]["tls"][key]
+        assert path.startswith("/run/secrets/") and path.rsplit("/", 1)[1] in targets.values(), (key, path)
+    assert config["listen"]["endpoints"] == ["tcp/[::]:7447", "tls/[::]:7448"], "services on tcp, routers on tls"
+    assert "0.0.0.0:7448:7448/tcp" in router["ports"] and "127.0.0.1:7447:7447/tcp" in router["ports"]
+    assert (generated / "bus-ca.key").stat().st_mode & 0o777 == 0o600
+    assert not any("bus-ca.key" in str(secret.get("file")) for secret in model["secrets"].values())
