@@ -12,7 +12,9 @@ it. Every program is a client of its own host's router, as a service is of its h
   the open ``tcp/`` pair in the same run; a client without the CA, anonymous clients and a stop
   forged with the env-worker's credentials are refused, while the operator's stop crosses.
 - slow: the same partition under the real services (an env-worker per host, the learner and the
-  evaluator on B): the learner keeps updating through it and the run goes on.
+  evaluator on B): the learner keeps updating through it and the run goes on. And the real services
+  on the pair with roles and TLS: an env-worker on A with its role's credentials, the learner on B
+  with its own; the learner trains on A's transitions across the TLS link.
 
 Figures are written to ``test-artifacts/multihost/figures.json``.
 """
@@ -236,15 +238,15 @@ def test_with_roles_the_tls_routers_refuse_strangers_and_wrong_roles(secured: tu
 
 def _service_env(host: Host, run_dir: Path, **settings: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAUSEWAY_")}
-    env.update(CAUSEWAY_RUN_ID=RUN, CAUSEWAY_ZENOH_CONNECT=LOCAL, CAUSEWAY_RUN_DIR=str(run_dir),
-               CAUSEWAY_METRICS_PORT="0", CAUSEWAY_ENV="chemical", CAUSEWAY_GRAPH="full", CAUSEWAY_NUM_OBJECTS="10",
-               **settings)
+    env.update({"CAUSEWAY_RUN_ID": RUN, "CAUSEWAY_ZENOH_CONNECT": LOCAL, "CAUSEWAY_RUN_DIR": str(run_dir),
+                "CAUSEWAY_METRICS_PORT": "0", "CAUSEWAY_ENV": "chemical", "CAUSEWAY_GRAPH": "full",
+                "CAUSEWAY_NUM_OBJECTS": "10", **settings})
     return env
 
 
-def _status(host: Host) -> dict[str, Any]:
-    result = host.run([str(REPO / ".venv" / "bin" / "causeway"), "status", "--run", RUN, "--connect", LOCAL,
-                       "--listen-s", "4", "--json"], timeout=60, cwd=REPO)
+def _status(host: Host, connect: str = LOCAL, *bus: str) -> dict[str, Any]:
+    result = host.run([str(REPO / ".venv" / "bin" / "causeway"), "status", "--run", RUN, "--connect", connect,
+                       "--listen-s", "4", "--json", *bus], timeout=60, cwd=REPO)
     assert result.returncode == 0, result.stderr[-2000:]
     return json.loads(result.stdout)
 
@@ -308,3 +310,38 @@ def test_services_on_two_hosts_ride_out_a_partition(hosts: TwoHosts) -> None:
     assert figures["env_workers_seen_on_b"]["before"] == 2 and figures["env_workers_seen_on_b_after_heal"] == 2, figures
     assert figures["learner_updates"]["after_heal"] > figures["learner_updates"]["before"], figures
     assert _value(after, "env-worker", "env_steps") > _value(before, "env-worker", "env_steps"), figures
+
+
+@pytest.mark.slow
+def test_services_with_roles_train_across_a_tls_link(secured: tuple[TwoHosts, Path, Path]) -> None:
+    hosts, a, b = secured
+    logs = ARTIFACTS / "services-tls"
+    logs.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="causeway-multihost-tls-") as tmp:
+        run_dir = Path(tmp)
+        hosts.a.start([PYTHON, "-m", "services.env_worker"], cwd=REPO, log=logs / "env-worker-1.log",
+                      env=_service_env(hosts.a, run_dir / "a", CAUSEWAY_ZENOH_CONNECT=LOCAL_ROLES,
+                                       CAUSEWAY_BUS_CREDENTIALS=str(a / "env-worker.credentials"),
+                                       CAUSEWAY_WORKER_INDEX="1", CAUSEWAY_INSTANCE="1"))
+        hosts.b.start([PYTHON, "-m", "services.dynamics_learner"], cwd=REPO, log=logs / "dynamics_learner.log",
+                      env=_service_env(hosts.b, run_dir / "b", CAUSEWAY_ZENOH_CONNECT=LOCAL_ROLES,
+                                       CAUSEWAY_BUS_CREDENTIALS=str(b / "dynamics-learner.credentials")))
+        operator = ("--bus-credentials", str(b / "operator.credentials"))
+        deadline, status = time.monotonic() + 150, {"services": []}
+        while time.monotonic() < deadline:
+            time.sleep(10)
+            status = _status(hosts.b, LOCAL_ROLES, *operator)
+            if _value(status, "dynamics-learner", "updates") > 0:
+                break
+        first = status
+        time.sleep(15)
+        later = _status(hosts.b, LOCAL_ROLES, *operator)
+    figures = {"env_workers_seen_on_b": len([r for r in later["services"] if r["service"] == "env-worker" and r["token"]]),
+               "learner_env_steps": [_value(first, "dynamics-learner", "env_steps"),
+                                     _value(later, "dynamics-learner", "env_steps")],
+               "learner_updates": [_value(first, "dynamics-learner", "updates"),
+                                   _value(later, "dynamics-learner", "updates")]}
+    _record("services_with_roles_across_a_tls_link", figures)
+    assert figures["env_workers_seen_on_b"] == 1, figures  # A's worker, through the TLS link, with its role
+    assert 0 < figures["learner_env_steps"][0] < figures["learner_env_steps"][1], figures
+    assert figures["learner_updates"][1] > figures["learner_updates"][0] > 0, figures
