@@ -9,8 +9,8 @@ run's model (its checkpointed weights and widths) rather than a fresh one, since
 the max, and so the cost of the sparse drop-one evaluation, depends on training.
 
     python -m benchmarks.bench_cdl_revisions --before REV [--objects 10] [--batch 64] [--rounds 7]
-        [--updates 5] [--causal-every 1] [--width 64] [--measure update|cmi] [--transitions 2000]
-        [--run-dir RUN]
+        [--updates 5] [--causal-every 1] [--width 64] [--parents true|all] [--measure update|cmi]
+        [--transitions 2000] [--run-dir RUN]
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from types import ModuleType
 import torch
 
 import causal.cdl as current
-from benchmarks.bench_cdl_update import chemical_batch
+from benchmarks.bench_cdl_update import chemical_batch, true_parents
 from causal.cdl import CDLConfig, CDLModel
 from causal.cdl_trainer import CDLTrainer
 from services.supervisor.evaluation import load_model
@@ -72,6 +72,9 @@ def main() -> None:
     p.add_argument("--measure", choices=["update", "cmi"], default="update")
     p.add_argument("--transitions", type=int, default=2000, help="transitions per CMI (--measure cmi)")
     p.add_argument("--run-dir", type=Path, help="--measure cmi: that run's trained model (Chemical full)")
+    p.add_argument("--parents", choices=["true", "all"], default="true",
+                   help="the causal term's parents: Chemical full's true graph (a trained run's; default), or every "
+                        "input (a fresh trainer's: the causal aggregate is then the full one)")
     args = p.parse_args()
     torch.set_num_threads(1)
     layout, batch = chemical_batch(args.objects, args.batch)
@@ -81,6 +84,8 @@ def main() -> None:
     for name, module in (("before", module_at(args.before)), ("after", current)):
         trainer = CDLTrainer(layout, cfg, seed=0)
         trainer.model.__class__ = module.CDLModel  # same parameters and buffers, that revision's code
+        if args.parents == "true":
+            trainer.set_parents(true_parents(args.objects))
         for _ in range(3):
             trainer.update(*batch)
         trainers[name] = trainer
@@ -88,18 +93,24 @@ def main() -> None:
         measure_cmi(args, {name: trainer.model for name, trainer in trainers.items()})
         return
     times: dict[str, list[float]] = {name: [] for name in trainers}
+    cpu: dict[str, list[float]] = {name: [] for name in trainers}
     for _ in range(args.rounds):
         for name, trainer in trainers.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             for _ in range(args.updates):
                 trainer.update(*batch)
             times[name].append((time.perf_counter() - t0) / args.updates)
+            cpu[name].append((time.process_time() - c0) / args.updates)
     median = {name: statistics.median(t) for name, t in times.items()}
+    median_cpu = {name: statistics.median(t) for name, t in cpu.items()}
     print(f"CDLTrainer.update, {args.objects} objects, batch {args.batch}, width {args.width}, causal term every "
-          f"{args.causal_every}, 1 thread, median of {args.rounds} alternating rounds of {args.updates}")
+          f"{args.causal_every} (parents: {args.parents}), 1 thread, median of {args.rounds} alternating rounds of "
+          f"{args.updates}; wall-clock and, in brackets, CPU seconds of this process (less disturbed by other load)")
     for name, seconds in median.items():
-        print(f"  {name:<6} ({args.before if name == 'before' else 'working tree'}): {seconds * 1000:8.1f} ms/update")
-    print(f"  ratio before / after: {median['before'] / median['after']:.2f}x")
+        print(f"  {name:<6} ({args.before if name == 'before' else 'working tree'}): {seconds * 1000:8.1f} ms/update "
+              f"({median_cpu[name] * 1000:.1f} CPU)")
+    print(f"  ratio before / after: {median['before'] / median['after']:.2f}x "
+          f"({median_cpu['before'] / median_cpu['after']:.2f}x CPU)")
 
 
 def measure_cmi(args: argparse.Namespace, models: dict[str, CDLModel]) -> None:

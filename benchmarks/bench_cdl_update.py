@@ -16,6 +16,11 @@ What each side does in one update (batch 64, one thread, Chemical ``full``):
 * Causeway like for like: the reference widths with the causal term on every update: the work of the
   authors' 1-step update (same widths, one step, every term every update).
 
+Causeway's causal term uses Chemical ``full``'s true graph as its parents (``--parents true``, what a
+trained run's evaluator gives it): the heads run only on the rows whose dropped or causal aggregate
+differs from the full one, so with every input a parent (``--parents all``, a fresh trainer's) the
+causal term would cost nothing and flatter the ratio.
+
 Ratios: each side's defaults (authors' defaults / Causeway's), equal widths (authors' defaults /
 Causeway at reference widths), like for like (authors' 1-step / Causeway like for like). The authors'
 figures exist for 5 and 10 objects only; Causeway's are measured here, in this run (median of
@@ -25,6 +30,7 @@ The loop baseline (same run) checks that the batched module computes the loop's 
 terms and measures what the batching alone buys, at ``--width``.
 
     python -m benchmarks.bench_cdl_update [--objects 5] [--batch 64] [--width 64] [--updates 20] [--device cpu]
+        [--parents true|all]
     python -m benchmarks.bench_cdl_update --objects 10 --profile    # where a like-for-like update's time goes
 """
 from __future__ import annotations
@@ -48,6 +54,11 @@ REFERENCE_WIDTHS = dict(feature_hidden=64, feature_dim=64, predictor_hidden=64)
 SETTINGS = {"defaults": CDLConfig(), "reference widths": CDLConfig(**REFERENCE_WIDTHS),
             "like for like": CDLConfig(**REFERENCE_WIDTHS, causal_every=1)}
 """Causeway's trainer settings timed (see the module's docstring for the work each does)."""
+
+
+def true_parents(objects: int) -> np.ndarray:
+    """Chemical ``full``'s one-step graph [d_S, d_S + 1]: the parents a trained run's causal term uses."""
+    return make_env("chemical", graph="full", num_objects=objects).unwrapped.global_graph.astype(bool)
 
 
 def chemical_batch(objects: int, batch: int) -> tuple[FactorLayout, tuple[torch.Tensor, ...]]:
@@ -89,7 +100,7 @@ def loop_nll(model: CDLModel, state: torch.Tensor, action: torch.Tensor, next_st
 
 
 def batched_nll(model: CDLModel, state, action, next_state, drop) -> torch.Tensor:
-    from causal.cdl import _MaxAndDropOne
+    from causal.cdl_max import _MaxAndDropOne
     feats = model.features(state, action)
     return model.nll(model.predict(torch.cat(list(_MaxAndDropOne.apply(feats, drop)), dim=1)), state, next_state)
 
@@ -115,10 +126,12 @@ def seconds_per_update(fn, model, batch, drop, updates: int, rounds: int = 5) ->
 
 
 def trainer_seconds(layout: FactorLayout, cfg: CDLConfig, batch: tuple[torch.Tensor, ...], updates: int,
-                    rounds: int, device: torch.device) -> float:
+                    rounds: int, device: torch.device, parents: np.ndarray | None = None) -> float:
     """Median over ``rounds`` of the seconds per ``CDLTrainer.update`` (``updates`` in a row, whole
-    causal-term cycles) on one fixed batch."""
+    causal-term cycles) on one fixed batch; the causal term's ``parents`` (None: every input)."""
     trainer = CDLTrainer(layout, cfg, seed=0)
+    if parents is not None:
+        trainer.set_parents(parents)
     trainer.to(device)
     batch = tuple(t.to(device) for t in batch)
     updates = max(updates, cfg.causal_every) // cfg.causal_every * cfg.causal_every
@@ -135,11 +148,14 @@ def trainer_seconds(layout: FactorLayout, cfg: CDLConfig, batch: tuple[torch.Ten
     return statistics.median(times)
 
 
-def profile_like_for_like(layout: FactorLayout, batch: tuple[torch.Tensor, ...], updates: int = 10) -> None:
+def profile_like_for_like(layout: FactorLayout, batch: tuple[torch.Tensor, ...], parents: np.ndarray | None,
+                          updates: int = 10) -> None:
     """Where a like-for-like update spends its time: torch's operator profile, by self CPU time."""
     from torch.profiler import ProfilerActivity, profile
 
     trainer = CDLTrainer(layout, SETTINGS["like for like"], seed=0)
+    if parents is not None:
+        trainer.set_parents(parents)
     for _ in range(3):
         trainer.update(*batch)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
@@ -163,12 +179,16 @@ def main() -> None:
     p.add_argument("--device", default="cpu", help="where Causeway's trainer runs (cpu, cuda)")
     p.add_argument("--no-loop", action="store_true", help="skip the per-factor loop baseline")
     p.add_argument("--profile", action="store_true", help="only print torch's operator profile of 10 like-for-like updates")
+    p.add_argument("--parents", choices=["true", "all"], default="true",
+                   help="the causal term's parents: Chemical full's true graph (a trained run's; default) or every "
+                        "input (a fresh trainer's, where the causal aggregate is the full one and costs nothing)")
     args = p.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     layout, batch = chemical_batch(args.objects, args.batch)
+    parents = true_parents(args.objects) if args.parents == "true" else None
     if args.profile:
-        profile_like_for_like(layout, batch)
+        profile_like_for_like(layout, batch, parents)
         return
     model = CDLModel(layout, CDLConfig(feature_hidden=args.width, feature_dim=args.width, predictor_hidden=args.width))
     print(f"CDL update, {args.objects} objects ({model.num_outputs} factors), batch {args.batch}, 1 thread, "
@@ -184,7 +204,7 @@ def main() -> None:
         print(f"    per-factor loop : {loop * 1000:8.1f} ms/update")
         print(f"    batched module  : {batched * 1000:8.1f} ms/update   ({loop / batched:.1f}x the loop)")
     device = torch.device(args.device)
-    measured = {name: trainer_seconds(layout, cfg, batch, args.updates, args.rounds, device)
+    measured = {name: trainer_seconds(layout, cfg, batch, args.updates, args.rounds, device, parents)
                 for name, cfg in SETTINGS.items()}
     print("  CDLTrainer.update (eq. 3.3, clipping, fused Adam), median of rounds:")
     for name, seconds in measured.items():

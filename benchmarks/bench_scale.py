@@ -143,8 +143,9 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     for graph in dict.fromkeys(r["graph"] for r in rows):
         mine = [r for r in rows if r["graph"] == graph]
         for key, style in (("update_cpu_s", "-o"), ("cmi_2k_cpu_s", "--s"), ("final_graph_cpu_s", ":^")):
+            slope = exponents(mine, key)
             ax.loglog([r["factors"] for r in mine], [r[key] for r in mine], style,
-                      label=f"{graph}: {key} (slope {exponents(mine, key):.2f})")
+                      label=f"{graph}: {key}" + (f" (slope {slope:.2f})" if slope is not None else ""))
     ax.set_xlabel("state factors d_S")
     ax.set_ylabel("CPU seconds (one thread)")
     ax.grid(alpha=0.3, which="both")
@@ -237,7 +238,8 @@ def report(rows: list[dict[str, Any]], out: Path) -> None:
               f"{r['peak_rss_mb']:.0f} | {reach} | {r['best_f1_reached']:.3f} |")
     for graph in dict.fromkeys(r["graph"] for r in rows):
         mine = [r for r in rows if r["graph"] == graph]
-        print(f"{graph}: growth exponents in d_S: " + ", ".join(f"{k} {exponents(mine, k):.2f}" for k in METRICS))
+        if len(mine) > 1:
+            print(f"{graph}: growth exponents in d_S: " + ", ".join(f"{k} {exponents(mine, k):.2f}" for k in METRICS))
     plot(rows, out / "scale.png")
     print(f"wrote {out / 'scale.json'} and {out / 'scale.png'}")
 

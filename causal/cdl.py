@@ -23,12 +23,15 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from causal.cdl_max import _MaxAndDropOne, masked_max, max_and_runner_up, training_aggregates
 from causal.factored import FactorCodec, FactorLayout
 from causal.method import layout_from_config
 from causal.method import model_config_json as method_config_json
 from proto.settings import doc
 
 LOG_2PI = math.log(2 * math.pi)
+__all__ = ["CDLConfig", "CDLModel", "FeatureGroup", "model_config_json", "model_from_config", "model_from_config_json",
+           "_MaxAndDropOne", "masked_max", "max_and_runner_up"]  # the last three re-exported (causal.cbm_implicit)
 
 
 @dataclass(frozen=True)
@@ -79,90 +82,6 @@ class CDLConfig:
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
 
-
-def max_and_runner_up(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Max over inputs (dim 1), the max without the arg-max input, and where the max sits.
-
-    ``where(is_max[:, i], runner_up, first)`` is the aggregate with input i masked to -inf, for
-    every i at once. Features are linear outputs, so exact ties have probability zero.
-    """
-    first = feats.amax(dim=1, keepdim=True)
-    is_max = feats == first
-    runner_up = torch.where(is_max, float("-inf"), feats).amax(dim=1, keepdim=True)
-    return first, runner_up, is_max
-
-
-def _indicator(x: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
-    """1.0 where ``x == value`` (broadcast), else 0.0, in ``x``'s dtype. On the CPU a float mask
-    multiplies at full vector speed where a bool one (``where``, ``masked_fill``, ``* bool``) runs ~3x
-    slower over the [J, I, B, F] features, and it is made by the comparison itself, with no cast."""
-    return torch.eq(x, value, out=torch.empty_like(x))
-
-
-def _top_two(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The largest and second-largest feature over inputs (dim 1), each [J, 1, B, F], by one running
-    max/min over the inputs: no full-size temporaries (with no ties, the second is the max without
-    the arg-max input, as in :func:`max_and_runner_up`)."""
-    first = feats[:, 0].clone()
-    second = torch.full_like(first, float("-inf"))
-    smaller = torch.empty_like(first)
-    for i in range(1, feats.shape[1]):
-        torch.minimum(first, feats[:, i], out=smaller)
-        torch.maximum(second, smaller, out=second)
-        torch.maximum(first, feats[:, i], out=first)
-    return first[:, None], second[:, None]
-
-
-class _MaxAndDropOne(torch.autograd.Function):
-    """(max over inputs, max over inputs without input ``drop``) with a lean backward.
-
-    Autograd's ``amax`` backward normalises by tie counts in several passes over [J, I, B, F];
-    ties have probability zero here, so the gradient is simply routed to the arg-max (and, for the
-    dropped term, to the runner-up where the arg-max was dropped). The top two come from one running
-    max/min (:func:`_top_two`) and the routing from float indicators: the only full-size tensors
-    made are the two indicators forward and the gradient backward.
-    """
-
-    @staticmethod
-    def forward(ctx, feats: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        first, runner_up = _top_two(feats)
-        dropped_is_max = feats.gather(1, drop.expand(-1, -1, -1, feats.shape[-1])) == first
-        dropped = torch.where(dropped_is_max, runner_up, first)
-        ctx.save_for_backward(_indicator(feats, first), _indicator(feats, runner_up), dropped_is_max)
-        return first, dropped
-
-    @staticmethod
-    def backward(ctx, grad_first: torch.Tensor, grad_dropped: torch.Tensor) -> tuple[torch.Tensor, None]:
-        is_max, is_runner_up, dropped_is_max = ctx.saved_tensors
-        to_max = grad_first + grad_dropped.masked_fill(dropped_is_max, 0.0)
-        to_runner_up = grad_dropped.masked_fill(~dropped_is_max, 0.0)
-        return torch.addcmul(is_max * to_max, is_runner_up, to_runner_up), None
-
-
-class _MaskedMax(torch.autograd.Function):
-    """Max over the inputs ``keep`` ([J, I] bool, group order) allows, gradient routed to the arg-max.
-
-    Equal to ``feats.masked_fill(~keep, -inf).amax(1)`` and its autograd gradient (ties have
-    probability zero), without a masked copy of the features or autograd's tie-counting backward:
-    masked inputs get a -inf bias (an add, not a ``masked_fill``)."""
-
-    @staticmethod
-    def forward(ctx, feats: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-        bias = torch.zeros(keep.shape, dtype=feats.dtype, device=feats.device).masked_fill_(~keep, float("-inf"))
-        masked = feats + bias[:, :, None, None]
-        out = masked.amax(dim=1, keepdim=True)
-        ctx.save_for_backward(_indicator(masked, out))
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
-        (is_max,) = ctx.saved_tensors
-        return is_max * grad, None
-
-
-def masked_max(feats: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-    """Features [J, I, B, F] aggregated over the inputs ``keep`` [J, I] (group order) allows: [J, 1, B, F]."""
-    return _MaskedMax.apply(feats, keep)
 
 
 def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
@@ -369,15 +288,30 @@ class CDLModel(nn.Module):
 
     def training_nll(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
                      parents: torch.Tensor | None, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The terms of eq. 3.3 as NLL [J, K, B]: K = full, one uniformly dropped input, causal parents."""
+        """The terms of eq. 3.3 as NLL [J, K, B]: K = full, one uniformly dropped input, causal parents.
+
+        The heads run on the full aggregate of every (output, sample) and on the dropped / causal
+        aggregates only where they differ from it (:func:`causal.cdl_max.training_aggregates`);
+        every other row's term is the full one's NLL, the same value and gradient as running the
+        heads on it (tests/causal/test_cdl.py)."""
         feats = self.features(state, action)
         drop = torch.randint(0, self.num_inputs, (self.num_outputs, 1, state.shape[0], 1),
                              generator=generator).to(feats.device)  # drawn on the CPU: the same draws on any device
-        terms = list(_MaxAndDropOne.apply(feats, drop))
+        excluded = None if parents is None else ~self.to_group_order(parents)
+        first, dropped, kept, d_j, d_b, c_j, c_b = training_aggregates(feats, drop, excluded)
+        cat, delta = self._targets(state, next_state)
+        full = self._nll_of(self.predict(first[:, None]), cat, delta)[:, 0]
+        terms = [full, self._replace_rows(full, d_j, d_b, dropped, cat, delta)]
         if parents is not None:
-            keep = self.to_group_order(parents)
-            terms.append(masked_max(feats, keep))
-        return self.nll(self.predict(torch.cat(terms, dim=1)), state, next_state)
+            terms.append(self._replace_rows(full, c_j, c_b, kept, cat, delta))
+        return torch.stack(terms, dim=1)
+
+    def _replace_rows(self, full: torch.Tensor, out_j: torch.Tensor, sample: torch.Tensor, rows: torch.Tensor,
+                      cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
+        """``full`` [J, B] with entries (out_j, sample) replaced by the heads' NLL of ``rows``."""
+        if not len(out_j):
+            return full
+        return full.index_put((out_j, sample), self._nll_of_rows(out_j, sample, rows, cat, delta))
 
     def constant_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """[I] bool, graph column order: inputs (state factors, then the action) that take a single

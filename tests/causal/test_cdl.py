@@ -257,6 +257,86 @@ def test_training_step_equals_the_plain_masked_computation() -> None:
         torch.testing.assert_close(ours[name], p.grad, rtol=1e-10, atol=1e-12, msg=name)
 
 
+def _all_rows_training_nll(model: CDLModel, state, action, next_state, parents, drop) -> torch.Tensor:
+    """Eq. 3.3's three terms with the heads on every (output, term, sample) row: the computation the
+    training step ran before it skipped the rows whose aggregate is the full one."""
+    from causal.cdl_max import _MaxAndDropOne, masked_max
+    feats = model.features(state, action)
+    terms = [*_MaxAndDropOne.apply(feats, drop), masked_max(feats, model.to_group_order(parents))]
+    return model.nll(model.predict(torch.cat(terms, dim=1)), state, next_state)
+
+
+def _loss_grads(model: CDLModel, nll: torch.Tensor) -> dict[str, torch.Tensor]:
+    model.zero_grad()
+    nll.mean(dim=2).sum().backward()
+    return {name: p.grad.clone() for name, p in model.named_parameters()}
+
+
+def _tie_inputs_a_and_b(model: CDLModel, state: torch.Tensor) -> None:
+    """Inputs a and b get the same feature networks and values: their features tie for every output."""
+    state[:, 1] = state[:, 0]
+    group = model.cont_features
+    outputs, inputs = group.shape[:2]
+    with torch.no_grad():
+        for name in ("w1", "b1"):
+            getattr(group, name)[:, 1] = getattr(group, name)[:, 0]
+        for name in ("w2", "b2"):
+            view = getattr(group, name).view(outputs, inputs, *getattr(group, name).shape[1:])
+            view[:, 1] = view[:, 0]
+
+
+@pytest.mark.parametrize("dtype,ties", [(torch.float64, False), (torch.float64, True), (torch.float32, False)])
+def test_training_step_on_the_differing_rows_equals_the_heads_on_every_row(dtype: torch.dtype, ties: bool) -> None:
+    """The dropped and causal terms run the heads only where their aggregate differs from the full
+    one; loss and every parameter gradient equal running them on all rows (and, without ties, the
+    plain masked_fill/amax computation), tied features included."""
+    from causal.cdl_max import training_aggregates
+    torch.manual_seed(5)  # 3 features over 5 inputs: at most 3 inputs hold a max per row, so rows are skipped
+    model = CDLModel(LAYOUT, CDLConfig(feature_hidden=8, feature_dim=3, predictor_hidden=8)).to(dtype)
+    s, a, n = (t.to(dtype) for t in toy_batch(np.random.default_rng(6), 48))
+    parents = torch.rand(LAYOUT.num_factors, LAYOUT.num_factors + 1) > 0.5
+    if ties:
+        _tie_inputs_a_and_b(model, s)
+        parents[:, 0] = True  # a kept; its twin b excluded by outputs a and c (kept and excluded inputs tie), kept by b and k
+        parents[:, 1] = torch.tensor([False, True, False, True])
+    parents[range(LAYOUT.num_factors), range(LAYOUT.num_factors)] = True
+    drop = torch.randint(0, model.num_inputs, (model.num_outputs, 1, s.shape[0], 1), generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        feats = model.features(s, a)
+        _, _, _, d_j, _, c_j, _ = training_aggregates(feats, drop, ~model.to_group_order(parents))
+    rows = model.num_outputs * s.shape[0]
+    assert 0 < len(d_j) < rows and 0 < len(c_j) <= rows  # some rows are skipped, some are not
+    assert ties or len(c_j) < rows  # a row where two inputs tie for a max runs the causal heads itself
+    if ties:  # the dropped twin, and the excluded twin holding the max, both occur
+        twin_a, twin_b = (model.input_order.tolist().index(column) for column in (0, 1))  # group order
+        assert bool(((feats[:, twin_a] == feats[:, twin_b]) & (feats[:, twin_a] == feats.amax(1))).any())
+    nll = model.training_nll(s, a, n, parents, torch.Generator().manual_seed(4))
+    ours = _loss_grads(model, nll)
+    references = [_all_rows_training_nll] + ([] if ties else [_plain_training_nll])
+    for reference in references:
+        expected = reference(model, s, a, n, parents, drop)
+        grads = _loss_grads(model, expected)
+        tol = 1e-10 if dtype == torch.float64 else 2e-5
+        torch.testing.assert_close(nll, expected, rtol=tol, atol=tol * float(expected.detach().abs().max()))
+        for name, grad in grads.items():
+            torch.testing.assert_close(ours[name], grad, rtol=tol, atol=tol * float(grad.abs().max()), msg=name)
+
+
+def test_training_step_with_every_input_a_parent_runs_no_causal_rows() -> None:
+    """With every input a parent the causal aggregate is the full one: no row of it is evaluated and
+    the causal term is the full term, exactly."""
+    from causal.cdl_max import training_aggregates
+    torch.manual_seed(7)
+    model = CDLModel(LAYOUT, CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8))
+    s, a, n = toy_batch(np.random.default_rng(8), 32)
+    parents = torch.ones(LAYOUT.num_factors, LAYOUT.num_factors + 1, dtype=torch.bool)
+    drop = torch.zeros(model.num_outputs, 1, 32, 1, dtype=torch.long)
+    out = training_aggregates(model.features(s, a), drop, ~model.to_group_order(parents))
+    assert len(out[5]) == 0 and out[2].shape == (0, 8)
+    nll = model.training_nll(s, a, n, parents, torch.Generator().manual_seed(0))
+    assert torch.equal(nll[:, 2], nll[:, 0])
+
+
 def test_same_seed_same_data_gives_identical_training() -> None:
     """A seeded run is reproducible: two trainers, same seed and data, bit-identical parameters."""
     cfg = CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)

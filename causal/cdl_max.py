@@ -1,0 +1,174 @@
+"""CDL's max aggregation over inputs (ch. 3, Fig. 3.3) and its lean gradients.
+
+Features are laid out ``[J, I, B, F]`` = (output factor, input, sample, feature). Eq. 3.3 needs three
+aggregates of one feature tensor (every input, one input dropped, the causal parents); eq. 3.2 needs
+every drop-one aggregate. All come from the top two values over inputs, and a gradient is routed to
+the input(s) holding the max (ties have probability zero: features are linear outputs).
+"""
+from __future__ import annotations
+
+import torch
+
+
+def max_and_runner_up(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Max over inputs (dim 1), the max without the arg-max input, and where the max sits.
+
+    ``where(is_max[:, i], runner_up, first)`` is the aggregate with input i masked to -inf, for
+    every i at once. Features are linear outputs, so exact ties have probability zero.
+    """
+    first = feats.amax(dim=1, keepdim=True)
+    is_max = feats == first
+    runner_up = torch.where(is_max, float("-inf"), feats).amax(dim=1, keepdim=True)
+    return first, runner_up, is_max
+
+
+def _indicator(x: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """1.0 where ``x == value`` (broadcast), else 0.0, in ``x``'s dtype. On the CPU a float mask
+    multiplies at full vector speed where a bool one (``where``, ``masked_fill``, ``* bool``) runs ~3x
+    slower over the [J, I, B, F] features, and it is made by the comparison itself, with no cast."""
+    return torch.eq(x, value, out=torch.empty_like(x))
+
+
+def _top_two(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The largest and second-largest feature over inputs (dim 1), each [J, 1, B, F], by one running
+    max/min over the inputs: no full-size temporaries (with no ties, the second is the max without
+    the arg-max input, as in :func:`max_and_runner_up`)."""
+    first = feats[:, 0].clone()
+    second = torch.full_like(first, float("-inf"))
+    smaller = torch.empty_like(first)
+    for i in range(1, feats.shape[1]):
+        torch.minimum(first, feats[:, i], out=smaller)
+        torch.maximum(second, smaller, out=second)
+        torch.maximum(first, feats[:, i], out=first)
+    return first[:, None], second[:, None]
+
+
+class _MaxAndDropOne(torch.autograd.Function):
+    """(max over inputs, max over inputs without input ``drop``) with a lean backward.
+
+    Autograd's ``amax`` backward normalises by tie counts in several passes over [J, I, B, F];
+    ties have probability zero here, so the gradient is simply routed to the arg-max (and, for the
+    dropped term, to the runner-up where the arg-max was dropped). The top two come from one running
+    max/min (:func:`_top_two`) and the routing from float indicators: the only full-size tensors
+    made are the two indicators forward and the gradient backward.
+    """
+
+    @staticmethod
+    def forward(ctx, feats: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        first, runner_up = _top_two(feats)
+        dropped_is_max = feats.gather(1, drop.expand(-1, -1, -1, feats.shape[-1])) == first
+        dropped = torch.where(dropped_is_max, runner_up, first)
+        ctx.save_for_backward(_indicator(feats, first), _indicator(feats, runner_up), dropped_is_max)
+        return first, dropped
+
+    @staticmethod
+    def backward(ctx, grad_first: torch.Tensor, grad_dropped: torch.Tensor) -> tuple[torch.Tensor, None]:
+        is_max, is_runner_up, dropped_is_max = ctx.saved_tensors
+        to_max = grad_first + grad_dropped.masked_fill(dropped_is_max, 0.0)
+        to_runner_up = grad_dropped.masked_fill(~dropped_is_max, 0.0)
+        return torch.addcmul(is_max * to_max, is_runner_up, to_runner_up), None
+
+
+class _MaskedMax(torch.autograd.Function):
+    """Max over the inputs ``keep`` ([J, I] bool, group order) allows, gradient routed to the arg-max.
+
+    Equal to ``feats.masked_fill(~keep, -inf).amax(1)`` and its autograd gradient (ties have
+    probability zero), without a masked copy of the features or autograd's tie-counting backward:
+    masked inputs get a -inf bias (an add, not a ``masked_fill``)."""
+
+    @staticmethod
+    def forward(ctx, feats: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+        bias = torch.zeros(keep.shape, dtype=feats.dtype, device=feats.device).masked_fill_(~keep, float("-inf"))
+        masked = feats + bias[:, :, None, None]
+        out = masked.amax(dim=1, keepdim=True)
+        ctx.save_for_backward(_indicator(masked, out))
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        (is_max,) = ctx.saved_tensors
+        return is_max * grad, None
+
+
+def masked_max(feats: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+    """Features [J, I, B, F] aggregated over the inputs ``keep`` [J, I] (group order) allows: [J, 1, B, F]."""
+    return _MaskedMax.apply(feats, keep)
+
+
+def _kept_inputs(feats: torch.Tensor, excluded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each output's kept (not ``excluded``) inputs' features: ``(index [J, K], features [J, K, B, F])``,
+    K the most any output keeps; an output keeping fewer is padded with -inf features."""
+    keep = ~excluded
+    counts = keep.sum(dim=1)
+    index = torch.argsort(keep.to(torch.uint8), dim=1, descending=True, stable=True)[:, : int(counts.max())]
+    kept = feats.gather(1, index[:, :, None, None].expand(-1, -1, *feats.shape[2:]))
+    padding = torch.arange(index.shape[1], device=feats.device) >= counts[:, None]
+    return index, kept.masked_fill_(padding[:, :, None, None], float("-inf"))
+
+
+class _TrainingAggregates(torch.autograd.Function):
+    """Eq. 3.3's three aggregates of one feature tensor, the dropped and causal ones only on the rows
+    where they differ from the full aggregate. See :func:`training_aggregates`."""
+
+    @staticmethod
+    def forward(ctx, feats: torch.Tensor, drop: torch.Tensor, excluded: torch.Tensor | None):
+        first, second = (x[:, 0] for x in _top_two(feats))  # [J, B, F]
+        dropped_is_max = feats.gather(1, drop.expand(-1, -1, -1, feats.shape[-1]))[:, 0] == first
+        d_j, d_b = dropped_is_max.any(dim=-1).nonzero(as_tuple=True)
+        dropped = torch.where(dropped_is_max[d_j, d_b], second[d_j, d_b], first[d_j, d_b])
+        c_j = c_b = d_j[:0]
+        kept_rows, c_pairs, index, routes = first.new_zeros(0, first.shape[-1]), dropped_is_max & False, None, None
+        if excluded is not None and bool(excluded.any()):
+            index, features = _kept_inputs(feats, excluded)
+            kept = features.amax(dim=1)
+            # the causal max is routed on its own where it differs from the full one, and where two inputs
+            # tie for the max (one of them may be excluded); elsewhere it is the full max, routed with it
+            c_pairs = (kept != first) | (first == second)
+            c_j, c_b = c_pairs.any(dim=-1).nonzero(as_tuple=True)
+            kept_rows, routes = kept[c_j, c_b], _indicator(features, kept[:, None])
+        ctx.mark_non_differentiable(d_j, d_b, c_j, c_b)
+        ctx.save_for_backward(feats, first, second, dropped_is_max, d_j, d_b, c_pairs, c_j, c_b, index, routes)
+        return first, dropped, kept_rows, d_j, d_b, c_j, c_b
+
+    @staticmethod
+    def backward(ctx, g_first, g_dropped, g_kept, *_):
+        feats, first, second, dropped_is_max, d_j, d_b, c_pairs, c_j, c_b, index, routes = ctx.saved_tensors
+        to_max = g_first.clone()  # [J, B, F]: what the arg-max of every (output, sample, feature) receives
+        to_second = torch.zeros_like(to_max)
+        if len(d_j):
+            rows_max = dropped_is_max[d_j, d_b]
+            to_max[d_j, d_b] += g_dropped.masked_fill(rows_max, 0.0)
+            to_second[d_j, d_b] = g_dropped.masked_fill(~rows_max, 0.0)
+        to_kept = None
+        if len(c_j):
+            rows_own = c_pairs[c_j, c_b]
+            to_max[c_j, c_b] += g_kept.masked_fill(rows_own, 0.0)
+            to_kept = torch.zeros_like(to_max)
+            to_kept[c_j, c_b] = g_kept.masked_fill(~rows_own, 0.0)
+        grad = _indicator(feats, first[:, None]).mul_(to_max[:, None])
+        p_j, p_b, p_f = dropped_is_max.nonzero(as_tuple=True)  # the runner-up takes the dropped arg-max's place
+        if len(p_j):
+            column = feats[p_j, :, p_b, p_f]  # [P, I]
+            grad.permute(0, 2, 3, 1).index_put_(  # a [J, B, F, I] view of grad
+                (p_j, p_b, p_f), _indicator(column, second[p_j, p_b, p_f, None]) * to_second[p_j, p_b, p_f, None],
+                accumulate=True)
+        if to_kept is not None:  # to the kept inputs holding the causal max
+            grad.scatter_add_(1, index[:, :, None, None].expand_as(routes), routes * to_kept[:, None])
+        return grad, None, None
+
+
+def training_aggregates(feats: torch.Tensor, drop: torch.Tensor, excluded: torch.Tensor | None
+                        ) -> tuple[torch.Tensor, ...]:
+    """Eq. 3.3's aggregates of features [J, I, B, F]: ``(first, dropped, kept, d_j, d_b, c_j, c_b)``.
+
+    ``first`` [J, B, F] is the max over every input. Dropping input ``drop[j, 0, b, 0]`` changes row
+    (j, b) only where that input holds the max of some feature; masking the inputs ``excluded`` [J, I]
+    marks (the non-parents, group order; None: no causal term) changes it only where one of them
+    does. Only those rows are returned: ``dropped`` [Nd, F] for rows (d_j, d_b), ``kept`` [Nc, F] for
+    (c_j, c_b); every other row's dropped / causal aggregate *is* ``first``'s, so its prediction and
+    loss are the full one's, and taking them from there gives the same loss and gradient as running
+    the heads on every row (tests/causal/test_cdl.py). The gradient is routed as
+    :class:`_MaxAndDropOne` and :class:`_MaskedMax` route it (to every input equal to the max) into
+    one gradient tensor: one full-size indicator and product (the causal max is taken over each
+    output's parents only), against their nine full-size passes and a sum of two gradients."""
+    return _TrainingAggregates.apply(feats, drop, excluded)
