@@ -47,6 +47,7 @@ class Inbox:
     def on_payload(self, key: str, payload: bytes) -> None:
         try:
             message = decode(payload, self.expected)
+            check_worker_key(key, message)
         except ProtocolError as exc:
             self.metrics.reject(exc.reason)
             log.warning("rejected message on %s: %s", key, exc)
@@ -78,6 +79,17 @@ class Inbox:
             if not self.items and not self.ready.wait_for(lambda: bool(self.items), timeout):
                 return None
             return self._pop()
+
+
+def check_worker_key(key: str, message: Any) -> None:
+    """``ProtocolError('inconsistent')`` for a worker's message (transitions, frames, skills, scored,
+    induced graphs) whose ``worker_id`` is not its key's last segment. The router pins each env-worker to
+    its own keys (``services.bus.roles.pinned``); this pins what the message says to the key, so worker 0
+    cannot send batches that call themselves worker 1's on its own key."""
+    inner = getattr(message, "transitions", message)
+    worker = getattr(inner, "worker_id", None)
+    if isinstance(worker, str) and key.rsplit("/", 1)[-1] != worker:
+        raise ProtocolError("inconsistent", f"a message of worker {worker!r} on {key}")
 
 
 class ServiceShell:

@@ -198,3 +198,53 @@ def test_a_stats_beat_counts_only_under_its_own_key(tmp_path: Path) -> None:
     own = ServiceStats(service="env-worker", instance="1", values={"env_steps": 64.0}, timestamp=0.0)
     sup._on_stats(topics.stats("run", "env-worker", "1"), encode(own))
     assert sup.progress.env_steps() == 64
+
+
+def test_a_workers_message_must_name_the_worker_of_its_key(worker: EnvWorkerCore) -> None:
+    """The router pins worker i to ``transitions/w<i>``; the consumers' inboxes pin the batch's own
+    ``worker_id`` to that key (transitions, and the scored batches that wrap them)."""
+    from proto.messages import ScoredBatch, TransitionBatch
+    from services.runtime.metrics import ServiceMetrics
+    from services.runtime.shell import Inbox
+
+    metrics = ServiceMetrics("test", "0")
+    inbox = Inbox("transitions", (TransitionBatch, ScoredBatch), maxsize=8, metrics=metrics)
+    batch = worker.collect()
+    scored = ScoredBatch(transitions=batch, intrinsic_reward=np.zeros(len(batch), np.float32), reward_kind="preddiff",
+                         weights_version=0)
+    other = "w" + str(int(batch.worker_id[1:]) + 1)
+    for key in (topics.transitions("run", other), topics.scored("run", other)):
+        inbox.on_payload(key, encode(batch if "transitions" in key else scored))
+    assert inbox.drain() == [] and metrics.rejected_count == 2
+    inbox.on_payload(topics.transitions("run", batch.worker_id), encode(batch))
+    inbox.on_payload(topics.scored("run", batch.worker_id), encode(scored))
+    assert [k for k, _ in inbox.drain()] == [topics.transitions("run", batch.worker_id),
+                                            topics.scored("run", batch.worker_id)]
+
+
+def test_scaled_workers_take_free_identities_below_the_limit(tmp_path: Path) -> None:
+    """Indices are bus identities drawn at the start (--max-workers of them): a scaled-up worker takes the
+    lowest one no running or still-stopping worker holds, never one beyond the limit."""
+    import subprocess
+    import sys
+
+    sup = Supervisor(build_config(RunConfig, router_port=7447, run_dir=str(tmp_path), run_id="run", progress=False,
+                                  max_workers=3))
+    sup.add_worker = lambda index: sup.process(f"env-worker-{index}", "services.env_worker", build_config(EnvWorkerConfig))
+    sup._write_process_table = lambda: None
+    sup.scale_workers(3)
+    assert sup.worker_indices() == [0, 1, 2] and sup.free_worker_index() is None
+    stopping = sup.processes["env-worker-1"]
+    stopping.process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        stopping.terminate = lambda: None  # still stopping: it keeps its identity
+        sup.scale_workers(1)
+        assert sup.worker_indices() == [0] and sup.free_worker_index() == 2
+        sup.scale_workers(3)  # only index 2 is free until worker 1 has exited
+        assert sup.worker_indices() == [0, 2]
+    finally:
+        stopping.process.kill()
+        stopping.process.wait()
+    assert sup.free_worker_index() == 1
+    sup.scale_workers(3)
+    assert sup.worker_indices() == [0, 1, 2]

@@ -160,6 +160,8 @@ def test_stale_forged_and_scoreless_graph_reports_cannot_break_the_finish_step(t
                        controllable=(), action_relevant=(), action_irrelevant=(), metrics={"f1": 0.5, "accuracy": 0.9},
                        timestamp=0.0)
     key = "causeway/run/graph/cdl"
+    (tmp_path / "checkpoints").mkdir()  # the learner's record: it published up to version 6
+    (tmp_path / "checkpoints" / "dynamics-learner-0.version.json").write_text('{"version": 6}')
     sup._on_graph(key, encode(real))
     sup._on_graph(key, encode(dataclasses.replace(real, weights_version=1, metrics={})))  # stale: ignored
     sup._on_graph(key, encode(dataclasses.replace(real, weights_version=2**62, metrics={"f1": 1.0})))  # refused
@@ -184,6 +186,6 @@ def test_stats_beats_of_processes_the_run_did_not_start_do_not_count(tmp_path) -
     for service, instance, values in (("env-worker", "0", {"env_steps": 300.0}), ("env-worker", "fuzz", {"env_steps": 1e12}),
                                       ("env-worker", "7", {"env_steps": 1e12}), ("dynamics-learner", "0", {"updates": 5.0}),
                                       ("dynamics-learner", "1", {"updates": 1e9}), ("graph-evaluator", "0", {"reports": 1.0})):
-        sup._on_stats("k", encode(ServiceStats(service, instance, values)))
+        sup._on_stats(f"causeway/{sup.cfg.run_id}/stats/{service}/{instance}", encode(ServiceStats(service, instance, values)))
     assert sup.progress.env_steps() == 300 and sup.progress.updates() == 5
     assert set(sup.progress.stats) == {("env-worker", "0"), ("dynamics-learner", "0")}
