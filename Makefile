@@ -86,7 +86,7 @@ bench-ch3: $(STAMP)
 		--transitions 100000 --updates 3000 --prediction-starts 2000 --match-graphs full --match-episodes 16 $(ARGS)
 
 lint: $(STAMP)
-	$(PY) -m pyflakes services proto envs causal benchmarks
+	$(PY) -m pyflakes services proto envs causal benchmarks tests
 
 # Compose secrets are bind mounts that keep the file's host owner and mode (outside Swarm compose
 # ignores uid/gid/mode), and the containers run as other users (causeway: 10001, grafana: 472), so

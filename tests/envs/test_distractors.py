@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import envs  # noqa: F401  (registers the Gymnasium ids)
 from envs.chemical_distractors import ChemicalDistractorsEnv
 from envs.chemical_match import ChemicalMatchEnv
 from envs.distractors import Distractors, is_distractor, parse_distractors

@@ -1,23 +1,16 @@
 """Fixed sample messages and wire helpers shared by the codec tests."""
 from __future__ import annotations
 
-import ast
-import json
 from collections.abc import Callable
-from dataclasses import fields, is_dataclass, replace
-from pathlib import Path
+from dataclasses import fields, is_dataclass
 from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
 
-from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
-from proto import FrameBatch, ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
-from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
+from proto import REJECT_REASONS, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
+from proto import FrameBatch, ScoredBatch, ServiceStats, TransitionBatch, Weights, decode, encode
 
 Mutation = Callable[[dict[str, Any]], None]
 

@@ -1,11 +1,8 @@
 """Codec contract: exact round trips, fuzzed input only ever raising ProtocolError."""
 from __future__ import annotations
 
-import ast
 import json
-from collections.abc import Callable
-from dataclasses import fields, is_dataclass, replace
-from pathlib import Path
+from dataclasses import fields, replace
 from typing import Any
 
 import msgpack
@@ -19,10 +16,10 @@ from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport,
 from proto import ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
 from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
 
-Mutation = Callable[[dict[str, Any]], None]
-
-from tests.proto.samples import *  # noqa: F401,F403  (the fixed samples and wire helpers)
-from tests.proto.samples import Mutation, assert_same, raw_of, reason_of, wire  # noqa: F401
+from tests.proto.samples import (
+    SAMPLES, assert_same, control, env_spec, graph_report, raw_of,
+    reason_of, scored, transitions, weights, wire,
+)
 
 
 # ----------------------------------------------------------------------------- round trips

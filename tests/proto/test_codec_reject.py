@@ -2,27 +2,20 @@
 from __future__ import annotations
 
 import ast
-import json
-from collections.abc import Callable
-from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
 
-from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, ProtocolError
-from proto import ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, decode, encode
-from proto.messages import ACTION_KINDS, CONTROL_COMMANDS, FACTOR_KINDS, MESSAGE_TYPES
+from proto import REJECT_REASONS, SCHEMA_VERSION, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
+from proto import ScoredBatch, ServiceStats, TransitionBatch, Weights, codec, encode
 
-Mutation = Callable[[dict[str, Any]], None]
-
-from tests.proto.samples import *  # noqa: F401,F403  (the fixed samples and wire helpers)
-from tests.proto.samples import Mutation, assert_same, raw_of, reason_of, wire  # noqa: F401
+from tests.proto.samples import (
+    Mutation, SAMPLES, control, env_spec, graph_report, local_report,
+    raw_of, reason_of, transitions, wire,
+)
 
 
 # ---------------------------------------------------------------- one reason per violation
