@@ -24,19 +24,22 @@ KILLS = [{"service": "env-worker-0", "back_on_bus_s": 12.5, "run_recovered_s": 1
           "transitions_lost_at_least": 120, "restarts": 1, "killed_at": 1.0},
          {"service": "dynamics-learner", "back_on_bus_s": 15.0, "run_recovered_s": 17.5,
           "learner_counted_lost_steps": 1536, "transitions_lost": 1280},
-         {"service": "dashboard", "note": "not killed: the run had ended"}]
+         {"service": "dashboard", "note": "not killed: the run had ended"},
+         {"service": "supervisor", "services_gone_s": 61.0, "left_running_60s_after": ["env-worker-0"],
+          "back_on_bus_s": 40.0, "run_recovered_s": 55.0}]
 
 
 def test_the_table_keeps_the_kill_figures_and_the_slowdown() -> None:
     base, chaos = run_row(summary("target f1 1.0 reached"), 200.0), run_row(summary("target f1 1.0 reached", (6, 1536)), 260.0)
     result = build_table(base, chaos, KILLS)
-    assert [k["killed"] for k in result["kills"]] == ["env-worker-0", "dynamics-learner", "dashboard"]
+    assert [k["killed"] for k in result["kills"]] == ["env-worker-0", "dynamics-learner", "dashboard", "supervisor"]
     assert "killed_at" not in result["kills"][0] and "restarts" not in result["kills"][0]
     assert result["kills"][1]["learner_counted_lost_steps"] == 1536
     assert result["slowdown"] == pytest.approx(1.3) and result["extra_seconds"] == pytest.approx(60.0)
     text = format_table(result)
     assert "| dynamics-learner | 15.0 | 17.5 | 1,536 | not in the resumed checkpoint: 1,280 steps |" in text
     assert "| dashboard | - | - | - | not killed: the run had ended |" in text
+    assert "| supervisor | 40.0 | 55.0 | - | still running 60 s after the supervisor's SIGKILL: env-worker-0 |" in text
     assert "| chaos | 260.0 | target f1 1.0 reached | 18,000 | 900 | 6 | 6 / 1,536 |" in text
     assert "+60.0 s (1.3x the baseline)" in text
 
