@@ -29,6 +29,11 @@ publication (a restarted learner continues above its high-water mark), so a cons
 miss this many publications in a row (hours at a publication per second) to refuse a real one."""
 
 
+UNKNOWN: Final = -1
+"""``known`` of a :class:`VersionGate` (and ``known_version`` of a service) when no version is known
+published: the first version of each publisher is taken as it comes."""
+
+
 class VersionGate:
     """The last accepted version of each publisher; a new version must be newer, by at most ``max_step``.
 
@@ -40,13 +45,19 @@ class VersionGate:
     restarted learner continues above any it published), so a real first version is never below
     ``known``, and a consumer that joins a run within ``max_step`` publications of that is not refused;
     a forged 2**62 is. A refused version is ``ProtocolError('inconsistent')``; the last accepted version
-    stays, so the real publisher's next versions are still taken."""
+    stays, so the real publisher's next versions are still taken.
+
+    ``known`` :data:`UNKNOWN` (-1): nothing is known (a compose or Kubernetes service with no checkpoint
+    yet, where no supervisor reads the learner's record): a publisher's first version is taken as it
+    comes and only the steps after it are bounded. Refusing instead would lock out, for good, a
+    consumer that restarts without a checkpoint once the run is past ``max_step`` publications; the
+    bus roles are what keeps a stranger from publishing weights there (docs/bus-roles.md)."""
 
     def __init__(self, max_step: int = MAX_VERSION_STEP, known: int = 0) -> None:
         if max_step < 1:
             raise ValueError(f"max_step must be >= 1, got {max_step}")
-        if known < 0:
-            raise ValueError(f"known must be >= 0, got {known}")
+        if known < UNKNOWN:
+            raise ValueError(f"known must be >= 0, or {UNKNOWN} for not known, got {known}")
         self.max_step = max_step
         self.known = known
         self.last: dict[str, int] = {}
@@ -66,7 +77,7 @@ class VersionGate:
                                                 f"published is {ceiling})")
         last = self.last.get(publisher)
         base = self.known if last is None else last
-        if version > base + self.max_step:
+        if base != UNKNOWN and version > base + self.max_step:
             since = f"the last accepted {last}" if last is not None else f"the {base} known published (first version)"
             raise ProtocolError("inconsistent", f"{publisher} version {version} jumps more than {self.max_step} "
                                                 f"past {since}")

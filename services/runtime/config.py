@@ -77,10 +77,12 @@ class ServiceConfig(RunSettings):
                                    "local run with --bus-auth); empty: connect without credentials")
     bus_tls_root_ca: str = doc("", "CA certificate (PEM file) that signed the router's TLS certificate, to reach a "
                                    "router on a tls/HOST:PORT endpoint (links that leave a host); empty: none")
-    known_version: int = doc(0, "a version of the weights this process consumes (the dynamics-learner's; an "
-                                "env-worker's: the policy-learner's) known published before it started, as the local "
-                                "supervisor read it; a publisher's first version may exceed it (or this process's "
-                                "checkpointed one) by at most 10,000 (services/runtime/accept.py)")
+    known_version: int = doc(-1, "a version of the weights this process consumes (the dynamics-learner's; an "
+                                 "env-worker's: the policy-learner's) known published before it started, as the local "
+                                 "supervisor read it; a publisher's first version may exceed it (or this process's "
+                                 "checkpointed one) by at most 10,000 (services/runtime/accept.py); -1: none known "
+                                 "(compose, Kubernetes: no supervisor reads the learner's record), the first version "
+                                 "is taken as it comes unless a checkpoint gives one")
 
 
 SERVICE_FIELDS = tuple(f.name for f in dataclasses.fields(ServiceConfig))

@@ -22,7 +22,7 @@ from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
 from services.intrinsic_reward.config import IntrinsicRewardConfig
 from services.intrinsic_reward.core import IntrinsicRewardCore
-from services.runtime.accept import VersionGate
+from services.runtime.accept import UNKNOWN, VersionGate
 from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
 from services.supervisor.supervisor import Supervisor
@@ -63,7 +63,20 @@ def test_a_first_version_is_bounded_by_a_version_known_published() -> None:
     with pytest.raises(ProtocolError, match=r"version 7 was never published \(the highest published is 6\)"):
         gate.take("c", 7, ceiling=6)
     with pytest.raises(ValueError):
-        VersionGate(known=-1)
+        VersionGate(known=-2)
+
+
+def test_with_nothing_known_a_first_version_is_taken_and_the_steps_after_it_bounded() -> None:
+    """compose and Kubernetes (no supervisor sets known_version): a consumer restarted without a
+    checkpoint late in a run must take the learner's versions, not refuse them for good."""
+    gate = VersionGate(max_step=10, known=UNKNOWN)
+    assert gate.take("w", 50_000) and not gate.take("w", 50_000) and gate.take("w", 50_010)
+    with pytest.raises(ProtocolError, match="jumps more than 10 past the last accepted 50010"):
+        gate.take("w", FORGED)
+    gate.know(60_000)  # a checkpoint's version bounds the publishers not heard from yet again
+    with pytest.raises(ProtocolError, match="past the 60000 known published"):
+        gate.take("v", FORGED)
+    assert build_config(GraphEvaluatorConfig).known_version == UNKNOWN
 
 
 def test_forged_first_weights_are_refused_and_the_real_first_ones_taken(worker: EnvWorkerCore) -> None:
@@ -73,7 +86,7 @@ def test_forged_first_weights_are_refused_and_the_real_first_ones_taken(worker: 
     real = learner.weights()
     forged = dataclasses.replace(real, version=FORGED, tensors={k: np.zeros_like(v) for k, v in real.tensors.items()})
     evaluator = new_evaluator(worker)
-    scorer = IntrinsicRewardCore(build_config(IntrinsicRewardConfig), worker.spec)
+    scorer = IntrinsicRewardCore(build_config(IntrinsicRewardConfig, known_version=0), worker.spec)  # as a fresh local run sets it
     for consumer in (evaluator, scorer):
         with pytest.raises(ProtocolError, match="first version"):
             consumer.load_weights(forged)
