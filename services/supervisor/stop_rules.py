@@ -64,7 +64,8 @@ class StableGraph:
         if not (self.reports or self.seconds) or report is None or report.undecided is None:
             return ""
         settled = self.count >= self.reports and elapsed - self.since >= self.seconds
-        if not settled or np.any(report.undecided):
+        reward_open = report.reward_undecided is not None and np.any(report.reward_undecided)
+        if not settled or np.any(report.undecided) or reward_open:  # CBM: the reward's parents decided too
             return ""
         return (f"graph stable: unchanged for {self.count} reports ({elapsed - self.since:.0f}s), "
                 f"no undecided entry ({report.edge_rule} rule)")

@@ -2,6 +2,8 @@
 and no entry undecided in the newest report; checked on hand-made reports."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from proto.messages import GraphReport
@@ -46,6 +48,23 @@ def test_undecided_entries_keep_the_run_going() -> None:
     assert rule.reason(report(1, undecided=1), 1.0) == ""
     assert rule.reason(report(2, undecided=1), 2.0) == ""  # stable, but one entry undecided
     assert rule.reason(report(3), 3.0) != ""  # still the same graph, now decided
+
+
+def test_an_undecided_reward_parent_keeps_the_run_going() -> None:
+    """CBM: its reward graph has standard errors too; a stable graph with a reward entry undecided is
+    not settled, and a changed reward parent starts the count over."""
+    def with_reward(version: int, parents: tuple[int, ...], undecided: tuple[int, ...] = ()) -> GraphReport:
+        base = report(version)
+        open_cells = np.zeros(3, np.uint8)
+        open_cells[list(undecided)] = 1
+        return dataclasses.replace(base, reward_parents=np.array([int(i in parents) for i in range(3)], np.uint8),
+                                   reward_undecided=open_cells)
+
+    rule = StableGraph(reports=2, seconds=0.0)
+    assert rule.reason(with_reward(1, (0,), undecided=(1,)), 1.0) == ""
+    assert rule.reason(with_reward(2, (0,), undecided=(1,)), 2.0) == ""  # stable, a reward entry open
+    assert rule.reason(with_reward(3, (0, 1)), 3.0) == "" and rule.count == 1  # a new parent: count over
+    assert rule.reason(with_reward(4, (0, 1)), 4.0) != ""
 
 
 def test_time_and_reports_must_both_hold() -> None:
