@@ -33,9 +33,10 @@ ARTIFACTS = REPO / "test-artifacts" / "chaos"
 ARTIFACTS = REPO / "test-artifacts" / "chaos"
 
 
-TO_TARGET = ("--num-objects", "10", "--target-f1", "0.95", "--target-metric", "best_threshold_f1")
-"""A run that needs minutes to its target (~800 updates; ~5 min on a loaded 2-core machine), so that
-every kill happens before it (3 objects reach F1 1.0 at the first reports)."""
+TO_TARGET = ("--num-objects", "10", "--target-f1", "0.85", "--target-metric", "f1")
+"""A run that needs minutes to its target (F1 0.88 came at ~1,600 updates in a 15-minute run on a
+loaded 2-core machine), so that every kill and recovery happens before it (3 objects reach F1 1.0 at
+the first reports; best-threshold F1 0.95 came at ~700 updates, before the policy-learner's recovery)."""
 
 
 def test_each_service_killed_in_turn_is_restarted_and_the_run_reaches_its_target(tmp_path: Path) -> None:
