@@ -21,6 +21,7 @@ from services.bus.base import Transport
 from services.runtime.checkpoint import CONFIG_ERROR_EXIT, CheckpointMismatch
 from services.runtime.config import ServiceConfig, parse_config, write_config
 from services.runtime.metrics import ServiceMetrics
+from services.runtime.orphan import watch_parent
 
 log = logging.getLogger(__name__)
 DEFAULT_INBOX_BYTES = 256 * 2**20
@@ -113,6 +114,7 @@ class ServiceShell:
         self._handles.append(transport.declare_token(topics.alive(cfg.run_id, service, cfg.instance)))
         if threading.current_thread() is threading.main_thread():
             self.install_signal_handlers()
+            watch_parent(self.stopping)
         log.info("%s %s started (run %s, bus %s)", service, cfg.instance, cfg.run_id, cfg.zenoh_connect)
 
     def install_signal_handlers(self) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from services.runtime.checkpoint import CONFIG_ERROR_EXIT
+from services.runtime.orphan import PARENT_ENV
 
 log = logging.getLogger("supervisor")
 PR_SET_PDEATHSIG = 1
@@ -41,7 +42,8 @@ class ManagedProcess:
 
     def start(self) -> None:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        env = {**os.environ, **self.environ, **(self.refresh() if self.refresh else {}), "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, **self.environ, **(self.refresh() if self.refresh else {}), "PYTHONUNBUFFERED": "1",
+               PARENT_ENV: str(os.getpid())}
         with open(self.log_path, "ab") as out:
             self.process = subprocess.Popen([sys.executable, "-m", self.module], env=env, stdout=out,
                                             stderr=subprocess.STDOUT, start_new_session=True,

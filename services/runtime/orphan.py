@@ -1,0 +1,54 @@
+"""A service whose supervisor died must not run on (issue 20 item 6).
+
+The supervisor starts each service with ``PR_SET_PDEATHSIG`` (SIGTERM when it dies), and SIGTERM asks
+the service's loop to stop: it checkpoints and exits. That is not enough on its own: the Zenoh router
+lives in the supervisor's process, and a loop blocked in a bus call or on a lock that call holds never
+gets back to look at its stop flag (seen once: an env-worker acting with a PPO policy ran on for over
+90 s after its supervisor was SIGKILLed, SIGTERM caught, loop stuck). So a watchdog thread, which needs
+neither the main thread nor the bus, sees the parent go, asks the loop to stop as SIGTERM does, and if
+the process is still there ``grace_s`` later ends it with :func:`os._exit`.
+
+Only processes a local supervisor started are watched (it names itself in :data:`PARENT_ENV`); compose
+and Kubernetes services have no such parent (the container runtime stops them).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from typing import Callable
+
+PARENT_ENV = "CAUSEWAY_SUPERVISOR_PID"
+"""The pid of the supervisor that started this process (set by ``services.supervisor.processes``)."""
+GRACE_S = 30.0
+"""How long a service whose supervisor is gone may take to checkpoint and exit before it is ended."""
+ORPHAN_EXIT = 143
+"""Exit status of a process ended by the watchdog (as if by SIGTERM: 128 + 15)."""
+
+log = logging.getLogger("orphan")
+
+
+def watch_parent(stopping: threading.Event, grace_s: float = GRACE_S, interval_s: float = 0.5,
+                 environ: dict[str, str] | None = None, exit: Callable[[int], None] = os._exit) -> threading.Thread | None:
+    """Start the watchdog (a daemon thread) if a supervisor started this process, else None."""
+    value = (os.environ if environ is None else environ).get(PARENT_ENV, "")
+    if not value.isdigit():
+        return None
+    thread = threading.Thread(target=_watch, args=(int(value), stopping, grace_s, interval_s, exit),
+                              name="orphan-watchdog", daemon=True)
+    thread.start()
+    return thread
+
+
+def _watch(parent: int, stopping: threading.Event, grace_s: float, interval_s: float,
+           exit: Callable[[int], None]) -> None:
+    while os.getppid() == parent:
+        time.sleep(interval_s)
+    log.error("the supervisor (pid %d) is gone: stopping, and ending this process in %.0f s if it has not "
+              "stopped by then", parent, grace_s)
+    stopping.set()
+    time.sleep(grace_s)
+    log.error("still running %.0f s after the supervisor died: ending it", grace_s)
+    logging.shutdown()
+    exit(ORPHAN_EXIT)
