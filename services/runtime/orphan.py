@@ -6,7 +6,11 @@ lives in the supervisor's process, and a loop blocked in a bus call or on a lock
 gets back to look at its stop flag (seen once: an env-worker acting with a PPO policy ran on for over
 90 s after its supervisor was SIGKILLed, SIGTERM caught, loop stuck). So a watchdog thread, which needs
 neither the main thread nor the bus, sees the parent go, asks the loop to stop as SIGTERM does, and if
-the process is still there ``grace_s`` later ends it with :func:`os._exit`.
+the process is still there ``grace_s`` later ends it with :func:`os._exit`. A thread still needs the
+GIL, and a native call that blocks while holding it (seen: a policy-learner still running 60 s after
+its supervisor's SIGKILL, with this thread in place) stops every thread; so a reaper outside the
+interpreter, a small shell loop started beside the service, SIGKILLs it ``REAPER_MARGIN_S`` after the
+thread's deadline if it is still there.
 
 Only processes a local supervisor started are watched (it names itself in :data:`PARENT_ENV`); compose
 and Kubernetes services have no such parent (the container runtime stops them).
@@ -15,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import os
+import subprocess
 import threading
 import time
 from typing import Callable
@@ -25,19 +30,42 @@ GRACE_S = 30.0
 """How long a service whose supervisor is gone may take to checkpoint and exit before it is ended."""
 ORPHAN_EXIT = 143
 """Exit status of a process ended by the watchdog (as if by SIGTERM: 128 + 15)."""
+REAPER_MARGIN_S = 5.0
+"""How long after the thread's deadline the reaper SIGKILLs a process the thread could not end."""
+REAPER = r"""
+svc=$1 sup=$2 grace=$3
+while [ -e /proc/$svc ]; do
+  ppid=$(sed -n 's/^PPid:[[:space:]]*//p' /proc/$svc/status 2>/dev/null)
+  if [ -n "$ppid" ] && [ "$ppid" != "$sup" ]; then
+    sleep "$grace"
+    kill -9 "$svc" 2>/dev/null
+    exit 0
+  fi
+  sleep 1
+done
+"""
+"""The reaper (``sh -c REAPER reaper <service pid> <supervisor pid> <seconds>``): while the service runs,
+watch its parent in /proc (reparenting happens when the supervisor exits, zombie or not); once it is
+another, wait the seconds and SIGKILL the service. Ends by itself with the service."""
 
 log = logging.getLogger("orphan")
 
 
 def watch_parent(stopping: threading.Event, grace_s: float = GRACE_S, interval_s: float = 0.5,
-                 environ: dict[str, str] | None = None, exit: Callable[[int], None] = os._exit) -> threading.Thread | None:
-    """Start the watchdog (a daemon thread) if a supervisor started this process, else None."""
+                 environ: dict[str, str] | None = None, exit: Callable[[int], None] = os._exit,
+                 reaper_margin_s: float | None = REAPER_MARGIN_S) -> threading.Thread | None:
+    """Start the watchdog (a daemon thread, and the reaper unless ``reaper_margin_s`` is None) if a
+    supervisor started this process, else None."""
     value = (os.environ if environ is None else environ).get(PARENT_ENV, "")
     if not value.isdigit():
         return None
     thread = threading.Thread(target=_watch, args=(int(value), stopping, grace_s, interval_s, exit),
                               name="orphan-watchdog", daemon=True)
     thread.start()
+    if reaper_margin_s is not None and os.path.isdir(f"/proc/{os.getpid()}"):
+        subprocess.Popen(["/bin/sh", "-c", REAPER, "reaper", str(os.getpid()), value, f"{grace_s + reaper_margin_s:g}"],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         close_fds=True)
     return thread
 
 

@@ -23,9 +23,12 @@ CHILD = textwrap.dedent("""
     import sys, threading, time
     from services.runtime.orphan import watch_parent
     stopping = threading.Event()
-    assert watch_parent(stopping, grace_s=1.0, interval_s=0.05) is not None
+    assert watch_parent(stopping, grace_s=1.0, interval_s=0.05, reaper_margin_s=1.0) is not None
     print("ready", flush=True)
-    if sys.argv[1] == "stuck":
+    if sys.argv[1] == "gil":
+        import ctypes
+        ctypes.PyDLL(None).sleep(120)  # a native call that blocks holding the GIL: no thread runs
+    elif sys.argv[1] == "stuck":
         lock = threading.Lock()
         lock.acquire()
         lock.acquire()  # never released: the loop never looks at its stop flag again
@@ -88,12 +91,20 @@ def test_a_stuck_loop_is_ended_after_the_grace_period(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
+def test_a_process_blocked_holding_the_gil_is_killed_by_the_reaper(tmp_path: Path) -> None:
+    """No thread of it runs (the watchdog neither): the shell reaper outside it SIGKILLs it."""
+    child, killed = orphan("gil", tmp_path)
+    waiting.wait_for(lambda: gone(child), 20, "the reaper to kill the child blocked holding the GIL")
+    assert time.monotonic() - killed >= 1.9  # the thread's grace and the reaper's margin were given
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_watchdog_ends_with_the_orphan_status() -> None:
     """In-process: the parent pid is not ours, so the watchdog fires at once and calls ``exit``."""
     codes: list[int] = []
     stopping = threading.Event()
     thread = watch_parent(stopping, grace_s=0.05, interval_s=0.01, environ={PARENT_ENV: str(os.getppid() + 1)},
-                          exit=codes.append)
+                          exit=codes.append, reaper_margin_s=None)
     assert thread is not None
     thread.join(5)
     assert stopping.is_set() and codes == [ORPHAN_EXIT]
