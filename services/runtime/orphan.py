@@ -18,6 +18,7 @@ and Kubernetes services have no such parent (the container runtime stops them).
 from __future__ import annotations
 
 import logging
+import math
 import os
 import subprocess
 import threading
@@ -34,19 +35,28 @@ REAPER_MARGIN_S = 5.0
 """How long after the thread's deadline the reaper SIGKILLs a process the thread could not end."""
 REAPER = r"""
 svc=$1 sup=$2 grace=$3
+started() { sed 's/.*) //' /proc/$svc/stat 2>/dev/null | cut -d' ' -f20; }
+start=$(started)
 while [ -e /proc/$svc ]; do
   ppid=$(sed -n 's/^PPid:[[:space:]]*//p' /proc/$svc/status 2>/dev/null)
   if [ -n "$ppid" ] && [ "$ppid" != "$sup" ]; then
-    sleep "$grace"
+    i=0
+    while [ "$i" -lt "$grace" ]; do
+      sleep 1
+      i=$((i + 1))
+      [ "$(started)" = "$start" ] || exit 0
+    done
     kill -9 "$svc" 2>/dev/null
     exit 0
   fi
   sleep 1
 done
 """
-"""The reaper (``sh -c REAPER reaper <service pid> <supervisor pid> <seconds>``): while the service runs,
-watch its parent in /proc (reparenting happens when the supervisor exits, zombie or not); once it is
-another, wait the seconds and SIGKILL the service. Ends by itself with the service."""
+"""The reaper (``sh -c REAPER reaper <service pid> <supervisor pid> <whole seconds>``): while the service
+runs, watch its parent in /proc (reparenting happens when the supervisor exits, zombie or not); once it
+is another, wait the seconds and SIGKILL the service, unless it is gone by then (its start time in
+/proc/<pid>/stat no longer the one it had, so a reused pid is never killed). Ends by itself with the
+service."""
 
 log = logging.getLogger("orphan")
 
@@ -63,7 +73,8 @@ def watch_parent(stopping: threading.Event, grace_s: float = GRACE_S, interval_s
                               name="orphan-watchdog", daemon=True)
     thread.start()
     if reaper_margin_s is not None and os.path.isdir(f"/proc/{os.getpid()}"):
-        subprocess.Popen(["/bin/sh", "-c", REAPER, "reaper", str(os.getpid()), value, f"{grace_s + reaper_margin_s:g}"],
+        seconds = str(math.ceil(grace_s + reaper_margin_s))
+        subprocess.Popen(["/bin/sh", "-c", REAPER, "reaper", str(os.getpid()), value, seconds],
                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                          close_fds=True)
     return thread
