@@ -21,7 +21,8 @@ class _Life:
     next_seq: int = 0
     """One past the highest ``seq`` taken from this life."""
     missing: dict[int, int] = field(default_factory=dict)
-    """``seq`` skipped and not (yet) arrived -> the steps counted lost for it."""
+    """``seq`` skipped and not (yet) arrived -> the steps counted lost for it, in ascending ``seq`` order
+    (each gap lies above every earlier one)."""
 
 
 class SeqGaps:
@@ -50,8 +51,8 @@ class SeqGaps:
             self.lost_batches += gap
             self.lost_steps += gap * steps
             state.missing.update((s, steps) for s in range(max(state.next_seq, seq - MISSING_KEPT), seq))
-            if len(state.missing) > MISSING_KEPT:
-                state.missing = {s: state.missing[s] for s in sorted(state.missing)[-MISSING_KEPT:]}
+            while len(state.missing) > MISSING_KEPT:  # keys go in ascending, so the first is the oldest
+                del state.missing[next(iter(state.missing))]
             state.next_seq = seq + 1
             return "after_gap" if gap else "next"
         counted = state.missing.pop(seq, None)

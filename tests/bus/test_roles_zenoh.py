@@ -5,8 +5,10 @@ A router started with a run's secrets (``services.bus.credentials``) and access 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 from pathlib import Path
+from typing import Callable, Iterator
 
 import pytest
 import zenoh
@@ -24,21 +26,32 @@ RUN = "acl"
 
 wait_for = functools.partial(waiting.wait_for, interval=0.1)
 
-@pytest.fixture
-def router(tmp_path: Path):
-    auth = write_run_secrets(tmp_path, new_passwords(), access_control(run_roles(RUN, "cdl")))
+@contextlib.contextmanager
+def serving(tmp_path: Path, roles: dict) -> Iterator[tuple[str, Callable[[str], ZenohTransport]]]:
+    """A router on loopback with ``roles``' secrets (a password each, written under ``tmp_path``) and
+    access control; yields its endpoint and ``client(user)``, a transport with that user's credentials.
+    Everything opened is closed on the way out."""
+    auth = write_run_secrets(tmp_path, new_passwords(tuple(roles)), access_control(roles))
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     session = start_router(endpoint, auth)
     opened: list[ZenohTransport] = []
 
-    def client(role: str) -> ZenohTransport:
-        opened.append(ZenohTransport(endpoint, read_credentials(role_file(tmp_path, role))))
+    def client(user: str) -> ZenohTransport:
+        opened.append(ZenohTransport(endpoint, read_credentials(role_file(tmp_path, user))))
         return opened[-1]
 
-    yield endpoint, client
-    for transport in opened:
-        transport.close()
-    session.close()
+    try:
+        yield endpoint, client
+    finally:
+        for transport in opened:
+            transport.close()
+        session.close()
+
+
+@pytest.fixture
+def router(tmp_path: Path):
+    with serving(tmp_path, run_roles(RUN, "cdl")) as served:
+        yield served
 
 
 def test_secrets_are_private_to_their_owner(tmp_path: Path) -> None:
@@ -146,20 +159,8 @@ def assert_forgery_refused(client, forger: str, key: str, owner: str, reader: st
 @pytest.fixture
 def instance_router(tmp_path: Path):
     """The local stack's router: a user per process (env-workers 0-2), each pinned to its own keys."""
-    roles = run_roles(RUN, "skild", workers=3)
-    auth = write_run_secrets(tmp_path, new_passwords(tuple(roles)), access_control(roles))
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    session = start_router(endpoint, auth)
-    opened: list[ZenohTransport] = []
-
-    def client(user: str) -> ZenohTransport:
-        opened.append(ZenohTransport(endpoint, read_credentials(role_file(tmp_path, user))))
-        return opened[-1]
-
-    yield endpoint, client, tmp_path
-    for transport in opened:
-        transport.close()
-    session.close()
+    with serving(tmp_path, run_roles(RUN, "skild", workers=3)) as (endpoint, client):
+        yield endpoint, client, tmp_path
 
 
 INSTANCE_FORGERIES = [
