@@ -1,15 +1,23 @@
 """FLAM's Tables 8.1 and 8.2 analogues on MultiGrid agents (chapter 8): 10-step prediction PSNR of
 FLAM, the monolithic latent action model of equal latent capacity, the two-stage slot baseline
 (``--models two-stage``) and the FSQ autoencoder's reconstruction ceiling, on unseen seeds; DCI of
-the latent actions against the agents' true actions.
+the latent actions against the agents' true actions, and Table 8.2's own reading: DCI of the factors
+against the agents' positions.
 
     python -m benchmarks.flam_table --seed 0
 
 Action-free videos of a uniformly random policy; the autoencoder is trained first and frozen
 (eq. 8.1), then each latent action model on short clips of its features (eq. 8.6). Prediction: the
 chapter's protocol (latent actions inferred from the unseen true frames, predictions fed back).
-DCI: the posterior means of the latent actions of each factor (FLAM: a slot; monolithic: a block of
-``d_a`` channels of its one latent) against the 4 agents' actions, by linear probes (causal/dci.py).
+DCI, by linear probes (causal/dci.py), D and C over factors (a factor's dimensions grouped), in two
+readings. ``dci_*``: the posterior means of the latent actions of each factor (FLAM: a slot;
+monolithic: a block of ``d_a`` channels of its one latent) against the 4 agents' actions.
+``dci_*_positions``: the chapter's Table 8.2 ("each factor as a latent variable ... how well it encodes
+each agent's information ... position prediction accuracy"): each slot's state xi_t against every
+agent's cell (x and y probes, summed per agent), FLAM and the two-stage baseline only (the monolithic
+model has no factor states). ``dci_*_positions_latent``: the latent actions (FLAM per slot,
+monolithic in K chunks of ``d_a``: the equal-capacity comparison) against the positions at t+1 they
+were inferred with. ``random``: Gaussian codes of the same shapes (chance).
 One torch thread. Budget: results.md's run (1,200 updates per model) took 4.5 min per autoencoder,
 13 min of FLAM training and 15 of monolithic training, about 22 minutes of wall time with the models
 in parallel processes on a loaded 2-core machine (load average 12-15); under 30 minutes either way.
@@ -26,7 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from causal.dci import dci
+from causal.dci import DCI, dci, position_dci
 from causal.flam import FLAM, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, fit_autoencoder, psnr, rollout
 from causal.flam_nets import FSQAutoencoder
 from causal.slots import frames_to_tensor
@@ -138,9 +146,16 @@ def train_two_stage(model: FLAM, features: torch.Tensor, labels: torch.Tensor, a
     return time.time() - start + train_lam(model, features, labels, args, "two-stage", prior="none")
 
 
+def dci_keys(scores: DCI, suffix: str = "") -> dict[str, float]:
+    return {f"dci_d{suffix}": scores.disentanglement, f"dci_c{suffix}": scores.completeness,
+            f"dci_i{suffix}": scores.informativeness}
+
+
 def evaluate(model: nn.Module, autoencoder: FSQAutoencoder, features: torch.Tensor, frames: torch.Tensor,
-             actions: torch.Tensor, num_slots: int) -> dict[str, float]:
-    """10-step PSNR (mean over clips) and DCI of the latent actions' posterior means."""
+             actions: torch.Tensor, positions: torch.Tensor, num_slots: int, grid_size: int) -> dict[str, float]:
+    """10-step PSNR (mean over clips); DCI of the latent actions' posterior means against the actions
+    (``dci_*``) and against the positions at t+1 (``dci_*_positions_latent``); for slot models, DCI of
+    the slots' states against the positions (``dci_*_positions``, Table 8.2's reading)."""
     model.eval()
     grid = frames.shape[2] // 4
     with torch.no_grad():
@@ -148,10 +163,25 @@ def evaluate(model: nn.Module, autoencoder: FSQAutoencoder, features: torch.Tens
         images = autoencoder.decode(predicted.flatten(0, 1), grid).view(frames.shape[0], -1, 3, *frames.shape[2:4])
         target = frames_to_tensor(frames[:, 1:].flatten(0, 1)).view_as(images)
         codes = model.infer(features).flatten(0, 1)
+        states = model.factorizer(features)[0].flatten(0, 1) if isinstance(model, FLAM) else None
     codes = codes.reshape(len(codes), num_slots, -1)
-    scores = dci(codes, actions.flatten(0, 1), classes=5)
-    return {"psnr": float(psnr(images, target).mean()), "dci_d": scores.disentanglement,
-            "dci_c": scores.completeness, "dci_i": scores.informativeness}
+    results = {"psnr": float(psnr(images, target).mean()), **dci_keys(dci(codes, actions.flatten(0, 1), classes=5)),
+               **dci_keys(position_dci(codes, positions[:, 1:].flatten(0, 1), grid_size), "_positions_latent")}
+    if states is not None:
+        results.update(dci_keys(position_dci(states, positions.flatten(0, 1), grid_size), "_positions"))
+    return results
+
+
+def random_codes(actions: torch.Tensor, positions: torch.Tensor, config: FLAMConfig, grid_size: int,
+                 seed: int) -> dict[str, float]:
+    """Table 8.2's Random row: Gaussian codes shaped as FLAM's latent actions (against the actions)
+    and as its slots (against the positions)."""
+    generator = torch.Generator().manual_seed(seed)
+    transitions, frames = actions.flatten(0, 1), positions.flatten(0, 1)
+    latent = torch.randn(len(transitions), config.num_slots, config.action_dim, generator=generator)
+    states = torch.randn(len(frames), config.num_slots, config.slot_dim, generator=generator)
+    return {**dci_keys(dci(latent, transitions, classes=5)),
+            **dci_keys(position_dci(states, frames, grid_size), "_positions")}
 
 
 def token_labels(labels: np.ndarray) -> torch.Tensor:
@@ -203,7 +233,7 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     results = {"recon": {"psnr": float(psnr(recon.view(shape), target.view(shape)).mean())}}
     copy = (train_features[:, 1:] - train_features[:, :-1]).pow(2).flatten(2).sum(-1).mean()
     print(f"copy-last-frame prediction_sse on the training videos: {float(copy):.4f}", flush=True)
-    actions = torch.from_numpy(test["actions"])
+    actions, positions = torch.from_numpy(test["actions"]), torch.from_numpy(test["positions"])
     models = {"flam": FLAM, "monolithic": MonolithicLAM, "two-stage": FLAM}
     labels = token_labels(train["labels"])
     for name in ("flam",) if env.correlated else args.models:
@@ -214,13 +244,15 @@ def main(args: Args) -> dict[str, dict[str, float]]:
         else:
             model = models[name](replace(config), grid * grid)
             seconds = train_lam(model, train_features, labels, args, name)
-        results[name] = {**evaluate(model, autoencoder, test_features, test_frames, actions, config.num_slots),
+        results[name] = {**evaluate(model, autoencoder, test_features, test_frames, actions, positions,
+                                    config.num_slots, env.grid_size),
                          "train_seconds": round(seconds, 1)}
         if isinstance(model, FLAM):
             with torch.no_grad():
                 attention = model.factorizer(test_features)[1]
             results[name].update(slot_sharing(agent_slots(attention, torch.from_numpy(test["labels"]), env.num_agents)))
         print(f"{name}: {json.dumps(results[name])}", flush=True)
+    results["random"] = random_codes(actions, positions, config, env.grid_size, args.seed)
     print_table(results, args)
     if args.out:
         Path(args.out).write_text(json.dumps({"args": vars(args), "results": results}, indent=2))
@@ -229,9 +261,13 @@ def main(args: Args) -> dict[str, dict[str, float]]:
 
 def print_table(results: dict[str, dict[str, float]], args: Args) -> None:
     print(f"\n{args.variant}: {args.horizon}-step prediction on {args.eval_episodes} unseen videos, seed {args.seed}")
-    print("| model | PSNR (dB) | DCI D | DCI C | DCI I |\n|---|---|---|---|---|")
+    print("| model | PSNR (dB) | latent actions vs actions: D / C / I | factor states vs positions: D / C / I "
+          "| latent actions vs positions: D / C / I |\n|---|---|---|---|---|")
     for name, row in results.items():
-        cells = [f"{row[k]:.2f}" if k in row else "-" for k in ("psnr", "dci_d", "dci_c", "dci_i")]
+        cells = [f"{row['psnr']:.2f}" if "psnr" in row else "-"]
+        for suffix in ("", "_positions", "_positions_latent"):
+            keys = [f"dci_{x}{suffix}" for x in "dci"]
+            cells.append(" / ".join(f"{row[k]:.2f}" for k in keys) if all(k in row for k in keys) else "-")
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 

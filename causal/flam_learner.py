@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from causal.dci import dci
+from causal.dci import dci, position_dci
 from causal.factored import FactorLayout
 from causal.flam import FLAM, FLAMConfig, LAMTrainer, encode_clips, psnr, rollout
 from causal.flam_nets import FSQAutoencoder, gaussian_kl
@@ -140,7 +140,10 @@ def latent_action_scores(model: FLAMModel, videos: dict[str, np.ndarray]) -> dic
     """The scores of Tables 8.1-8.2 on ``videos`` (:func:`envs.multigrid_agents.record_videos`): PSNR of
     the rollout over the whole video (latent actions inferred from the true frames, predictions fed
     back), DCI of the latent actions' posterior means against the agents' actions (each slot one
-    factor), and each slot's mean KL to the prior (nats per transition: what its latent action carries)."""
+    factor: ``dci_d``, ``dci_c``, ``dci_i``), DCI of the slots' states against the agents' positions
+    (Table 8.2's own reading, each slot one factor, each agent's x and y one ground-truth factor:
+    ``dci_d_positions``, ...), and each slot's mean KL to the prior (nats per transition: what its
+    latent action carries)."""
     model.eval()
     frames = torch.from_numpy(videos["frames"])
     features = model.features(frames)
@@ -152,8 +155,11 @@ def latent_action_scores(model: FLAMModel, videos: dict[str, np.ndarray]) -> dic
     k, d = slots.shape[2:]
     mu, log_sigma = model.lam.idm(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
     scores = dci(mu, torch.from_numpy(videos["actions"]).flatten(0, 1), classes=NUM_MOVES)
+    positions = position_dci(slots.flatten(0, 1), torch.from_numpy(videos["positions"]).flatten(0, 1), model.grid_size)
     return {"psnr": float(psnr(images.view(shape), target.view(shape)).mean()), "dci_d": scores.disentanglement,
             "dci_c": scores.completeness, "dci_i": scores.informativeness,
+            "dci_d_positions": positions.disentanglement, "dci_c_positions": positions.completeness,
+            "dci_i_positions": positions.informativeness,
             "slot_kl": [float(v) for v in gaussian_kl(mu, log_sigma).mean(0)]}
 
 
@@ -257,4 +263,5 @@ class LatentActionScores:
                 "evaluation": f"final model on {self.videos} unseen videos of a uniformly random policy: PSNR of "
                               f"{model.config.horizon}-step predictions (latent actions inferred from the true frames, "
                               "predictions fed back; Table 8.1's protocol), DCI of the latent actions' posterior "
-                              "means against the agents' actions (Table 8.2), each slot's KL (nats)"}
+                              "means against the agents' actions (dci_*), DCI of the slots' states against the "
+                              "agents' positions (dci_*_positions, Table 8.2's reading), each slot's KL (nats)"}

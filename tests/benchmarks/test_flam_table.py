@@ -20,10 +20,14 @@ def test_flam_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str
                      "--ae-updates", "1", "--updates", "2", "--slot-dim", "16", "--aggregator", "broadcast",
                      "--mask-prior", "annealed", "--out", str(out)]))
     results = json.loads(out.read_text())["results"]
-    assert set(results) == {"recon", "flam", "monolithic"}
+    assert set(results) == {"recon", "flam", "monolithic", "random"}
     for name in ("flam", "monolithic"):
-        assert 0.0 <= results[name]["dci_d"] <= 1.0 and 0.0 <= results[name]["dci_i"] <= 1.0
+        for suffix in ("", "_positions_latent"):
+            assert all(0.0 <= results[name][f"dci_{x}{suffix}"] <= 1.0 for x in "dci")
         assert results[name]["psnr"] > 0
+    # Table 8.2's reading (factor states against positions) for the slot model and the chance row alone
+    assert all(0.0 <= results[key][f"dci_{x}_positions"] <= 1.0 for key in ("flam", "random") for x in "dci")
+    assert "dci_d_positions" not in results["monolithic"] and "psnr" not in results["random"]
     assert 0.0 <= results["flam"]["every_agent_own_slot"] <= 1.0
     assert "| flam |" in capsys.readouterr().out
 
@@ -59,5 +63,6 @@ def test_the_two_stage_baseline_trains_slots_first_then_latent_actions_on_them_f
     train_lam(model, features, labels, args, "two-stage", prior="none")
     assert all(torch.equal(a, b) for a, b in zip(frozen, model.factorizer.parameters()))
     results = main(replace(args, out=str(tmp_path / "table.json")))
-    assert set(results) == {"recon", "two-stage"} and results["two-stage"]["psnr"] > 0
+    assert set(results) == {"recon", "two-stage", "random"} and results["two-stage"]["psnr"] > 0
+    assert 0.0 <= results["two-stage"]["dci_d_positions"] <= 1.0
     assert 0.0 <= results["two-stage"]["every_agent_own_slot"] <= 1.0
