@@ -21,9 +21,9 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from envs import manipulation_layout as layout
 from envs.manipulation_layout import (
-    FIXED_HALF, MARKERS, MOV_HALF, REGION_HIGH, REGION_LOW, TABLE_TOP, WORKSPACE_HIGH, WORKSPACE_LOW,
+    FIXED_HALF, MANIPULATION, MOV_HALF, REGION_HIGH, REGION_LOW, TABLE_TOP, WORKSPACE_HIGH, WORKSPACE_LOW,
+    SceneLayout,
 )
 from envs.manipulation_scene import CausalTableScene
 from envs.manipulation_truth import global_graph, local_graph
@@ -35,8 +35,6 @@ POSITION_BOUND = 10.0
 """Observation-space bound on every factor, far outside the scene (a dropped cube lies on the floor)."""
 MIN_CUBE_SEPARATION = 0.09
 """Minimum distance between cube centres at reset, so that no episode starts with cubes touching."""
-_KINEMATIC = ("unm", "rand", *MARKERS)
-"""The mocap bodies, in the scene's order."""
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 _UPRIGHT = np.array([1.0, 0.0, 0.0, 0.0])
 """Cubes start axis-aligned: orientation is not part of the state, so a random yaw would be a hidden
@@ -71,6 +69,9 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
     """
 
     metadata = {"render_modes": []}
+    LAYOUT: SceneLayout = MANIPULATION
+    """The cubes and markers on the table (a subclass sets another: :class:`envs.block.BlockEnv`)."""
+    ENV_ID = "manipulation"
 
     def __init__(
         self,
@@ -86,13 +87,14 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
         self.episode_length, self.max_displacement = episode_length, max_displacement
         self.random_walk_step, self.control_freq, self.robot = random_walk_step, control_freq, robot
         self.render_mode = render_mode
-        self.scene = CausalTableScene(robot=robot, control_freq=control_freq)
+        self.layout = self.LAYOUT
+        self.scene = CausalTableScene(robot=robot, control_freq=control_freq, layout=self.layout)
         self.action_space = gym.spaces.Box(
             np.array([-1, -1, -1, 0], np.float32), np.ones(4, np.float32), dtype=np.float32
         )
-        bound = np.full(layout.NUM_FACTORS, POSITION_BOUND, np.float32)
+        bound = np.full(self.layout.num_factors, POSITION_BOUND, np.float32)
         self.observation_space = gym.spaces.Box(-bound, bound, dtype=np.float32)
-        self._global_graph = global_graph()
+        self._global_graph = global_graph(self.layout)
         self._global_graph.flags.writeable = False
         self._steps = 0
 
@@ -103,12 +105,12 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
 
     @property
     def factor_names(self) -> tuple[str, ...]:
-        return layout.FACTOR_NAMES
+        return self.layout.factor_names
 
     def constant_factors(self) -> tuple[str, ...]:
         """Factors constant in every episode by construction (:data:`envs.manipulation_layout.CONSTANT_FACTORS`):
         the edges they cause are true but cannot be learned from this environment's data."""
-        return layout.CONSTANT_FACTORS
+        return self.layout.constant_factors
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -116,11 +118,13 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
         """The arm at its start pose, gripper open; cubes and markers at random places on the table."""
         super().reset(seed=seed)
         self.scene.reset_scene()
+        lay = self.layout
         cubes = self._sample_cube_xy()
-        markers = self.np_random.uniform(REGION_LOW, REGION_HIGH, size=(len(MARKERS), 2))
-        self.scene.set_mov_pose(np.r_[cubes[0], TABLE_TOP[2] + MOV_HALF], _UPRIGHT)
-        heights = np.r_[[TABLE_TOP[2] + FIXED_HALF] * 2, [TABLE_TOP[2]] * len(MARKERS)]
-        kinematic_xy = np.vstack([cubes[1:], markers])
+        markers = self.np_random.uniform(REGION_LOW, REGION_HIGH, size=(len(lay.markers), 2))
+        for k in range(len(lay.movable)):
+            self.scene.set_mov_pose(np.r_[cubes[k], TABLE_TOP[2] + MOV_HALF], _UPRIGHT, k)
+        heights = np.r_[[TABLE_TOP[2] + FIXED_HALF] * len(lay.kinematic), [TABLE_TOP[2]] * len(lay.markers)]
+        kinematic_xy = np.vstack([cubes[len(lay.movable):], markers])
         self.scene.set_kinematic_pose(np.column_stack([kinematic_xy, heights]), np.tile(_UPRIGHT, (len(heights), 1)))
         self.scene.commit_poses()
         self._steps = 0
@@ -132,7 +136,7 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
         goal = np.clip(self.scene.eef_pos() + self.max_displacement * a[:3], WORKSPACE_LOW, WORKSPACE_HIGH)
         self.scene.step_to(goal, 1.0 - 2.0 * a[3], self._walk())
         self._steps += 1
-        info = {"local_graph": local_graph(self.scene.contacts)}
+        info = {"local_graph": local_graph(self.scene.contacts, self.layout)}
         return self._observation(), 0.0, False, self._steps >= self.episode_length, info
 
     # ------------------------------------------------------------------ interventions
@@ -157,24 +161,29 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
 
         Cube and marker coordinates and ``grp.*`` can be set; ``eef.*`` cannot (it is the arm's
         forward kinematics: move it with actions). Everything not named keeps its exact state (a
-        set ``mov`` is also put at rest). A cube set into another body is pushed out by the
+        set movable cube is also put at rest). A cube set into another body is pushed out by the
         simulator on the next step.
         """
-        scene = self.scene
-        grp, mov, kinematic = scene.gripper_qpos(), scene.mov_pos(), scene.kinematic_pos()
+        scene, lay = self.scene, self.layout
+        grp, movable, kinematic = scene.gripper_qpos(), scene.movable_pos(), scene.kinematic_pos()
         touched = set()
         for name, value in values.items():
-            if name not in layout.FACTOR_NAMES or name.startswith("eef."):
-                raise KeyError(f"cannot intervene on {name!r}; settable: {layout.FACTOR_NAMES[3:]}")
+            if name not in lay.factor_names or name.startswith("eef."):
+                raise KeyError(f"cannot intervene on {name!r}; settable: {lay.factor_names[3:]}")
             obj, dim = name.split(".")
-            target = {"grp": grp, "mov": mov}.get(obj)
-            row = target if target is not None else kinematic[_KINEMATIC.index(obj)]
-            row[layout.OBJECT_DIMS[obj].index(dim)] = value
+            if obj == "grp":
+                row = grp
+            elif obj in lay.movable:
+                row = movable[lay.movable.index(obj)]
+            else:
+                row = kinematic[lay.mocap.index(obj)]
+            row[lay.dims(obj).index(dim)] = value
             touched.add(obj)
         if "grp" in touched:
             scene.sim.data.qpos[scene.gripper_qpos_addr] = grp
-        if "mov" in touched:
-            scene.set_mov_pose(mov, scene.mov_quat())
+        for k, obj in enumerate(lay.movable):
+            if obj in touched:
+                scene.set_mov_pose(movable[k], scene.mov_quat(k), k)
         scene.set_kinematic_pose(kinematic)
         scene.commit_poses()
         return self._observation()
@@ -185,14 +194,14 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
         """The factor layout, action space, ground truth and configuration, as the bus carries it.
         Normalisation: positions about a point 5 cm above the table's centre, 0.1 m per unit;
         finger joints about mid-range, 0.02 m per unit (so each spans [-1, 1])."""
-        n = layout.NUM_FACTORS
-        locs, scales = _normalisation()
+        n = self.layout.num_factors
+        locs, scales = _normalisation(self.layout)
         return EnvSpec(
-            env_id="manipulation",
-            factor_names=layout.FACTOR_NAMES,
+            env_id=self.ENV_ID,
+            factor_names=self.layout.factor_names,
             factor_kinds=("continuous",) * n,
             factor_sizes=(1,) * n,
-            factor_objects=layout.FACTOR_OBJECTS,
+            factor_objects=self.layout.factor_objects,
             factor_locs=locs,
             factor_scales=scales,
             action_kind="continuous",
@@ -218,28 +227,30 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
     # ------------------------------------------------------------------ internals
 
     def _sample_cube_xy(self) -> np.ndarray:
+        cubes = len(self.layout.movable) + len(self.layout.kinematic)
         while True:
-            xy = self.np_random.uniform(REGION_LOW, REGION_HIGH, size=(3, 2))
-            gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(3, 1)]
+            xy = self.np_random.uniform(REGION_LOW, REGION_HIGH, size=(cubes, 2))
+            gaps = np.linalg.norm(xy[:, None] - xy[None], axis=-1)[np.triu_indices(cubes, 1)]
             if gaps.min() >= MIN_CUBE_SEPARATION:
                 return xy
 
     def _walk(self) -> np.ndarray:
         """Targets of the kinematic bodies for this step: ``unm`` stays, the others walk per axis."""
         pos = self.scene.kinematic_pos()
-        step = self.np_random.uniform(-self.random_walk_step, self.random_walk_step, size=(len(pos) - 1, 2))
-        pos[1:, :2] = np.clip(pos[1:, :2] + step, REGION_LOW, REGION_HIGH)
+        walking = np.array([name not in self.layout.still for name in self.layout.mocap], dtype=bool)
+        step = self.np_random.uniform(-self.random_walk_step, self.random_walk_step, size=(int(walking.sum()), 2))
+        pos[walking, :2] = np.clip(pos[walking, :2] + step, REGION_LOW, REGION_HIGH)
         return pos
 
     def _observation(self) -> np.ndarray:
         s = self.scene
-        parts = (s.eef_pos(), s.gripper_qpos(), s.mov_pos(), s.kinematic_pos().ravel())
+        parts = (s.eef_pos(), s.gripper_qpos(), s.movable_pos().ravel(), s.kinematic_pos().ravel())
         return np.concatenate(parts).astype(np.float32)
 
 
-def _normalisation() -> tuple[tuple[float, ...], tuple[float, ...]]:
+def _normalisation(layout: SceneLayout) -> tuple[tuple[float, ...], tuple[float, ...]]:
     centre = {"x": TABLE_TOP[0], "y": TABLE_TOP[1], "z": TABLE_TOP[2] + 0.05, "0": 0.02, "1": -0.02}
-    dims = [name.split(".")[1] for name in layout.FACTOR_NAMES]
+    dims = [name.split(".")[1] for name in layout.factor_names]
     return tuple(float(centre[d]) for d in dims), tuple(0.02 if d in "01" else 0.1 for d in dims)
 
 

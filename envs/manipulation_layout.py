@@ -5,6 +5,8 @@ scripted skills (:mod:`envs.skills`) can be used without loading robosuite.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 OBJECTS = ("eef", "grp", "mov", "unm", "rand", "mk1", "mk2", "mk3")
@@ -45,3 +47,66 @@ WORKSPACE_LOW, WORKSPACE_HIGH = np.array([-0.25, -0.3, 0.805]), np.array([0.2, 0
 ROBOT, MOV_BODY, UNM_BODY, RAND_BODY, STATIC = range(5)
 CONTACT_GROUPS = ("robot", "mov", "unm", "rand", "static")
 """Rows/columns of a step's contact matrix: the robot's moving links, the three cubes, the rest."""
+
+
+@dataclass(frozen=True)
+class SceneLayout:
+    """Which cubes and markers a table scene holds, and the factor layout and contact groups that follow.
+
+    ``movable``: free-jointed cubes the robot can move (half-size :data:`MOV_HALF`); ``kinematic``:
+    mocap cubes nothing can move (half-size :data:`FIXED_HALF`), of which those in ``still`` never move
+    and the others walk; ``markers``: walking visual-only discs. Factors: ``eef.x/y/z``, ``grp.0/1``,
+    then ``x/y/z`` of every movable cube, kinematic cube and marker, in that order. Contact groups:
+    the robot, every cube, the static rest."""
+
+    movable: tuple[str, ...]
+    kinematic: tuple[str, ...]
+    markers: tuple[str, ...]
+    still: tuple[str, ...] = ("unm",)
+
+    @property
+    def objects(self) -> tuple[str, ...]:
+        return ("eef", "grp") + self.movable + self.kinematic + self.markers
+
+    @property
+    def mocap(self) -> tuple[str, ...]:
+        """The kinematic bodies in the simulator's order: kinematic cubes, then markers."""
+        return self.kinematic + self.markers
+
+    def dims(self, obj: str) -> tuple[str, ...]:
+        return OBJECT_DIMS["grp"] if obj == "grp" else ("x", "y", "z")
+
+    @property
+    def factor_names(self) -> tuple[str, ...]:
+        return tuple(f"{o}.{d}" for o in self.objects for d in self.dims(o))
+
+    @property
+    def factor_objects(self) -> tuple[str, ...]:
+        return tuple(o for o in self.objects for _ in self.dims(o))
+
+    @property
+    def num_factors(self) -> int:
+        return len(self.factor_objects)
+
+    def factor_slice(self, obj: str) -> slice:
+        """The factor (observation) indices of object ``obj``."""
+        start = self.factor_objects.index(obj)
+        return slice(start, start + len(self.dims(obj)))
+
+    @property
+    def contact_groups(self) -> tuple[str, ...]:
+        """Rows/columns of a step's contact matrix: ``robot``, every cube, ``static`` (last)."""
+        return ("robot",) + self.movable + self.kinematic + ("static",)
+
+    @property
+    def constant_factors(self) -> tuple[str, ...]:
+        """The z of every kinematic cube and marker (they sit on the table and walk horizontally)."""
+        return tuple(f"{o}.z" for o in self.mocap)
+
+
+MANIPULATION = SceneLayout(movable=("mov",), kinematic=("unm", "rand"), markers=MARKERS)
+"""Chapter 3's scene (the module constants above are its layout)."""
+BLOCK = SceneLayout(movable=("mov1", "mov2", "mov3"), kinematic=("unm",), markers=())
+"""Chapter 4's block scene (Fig. 4.7 left): three movable cubes and one fixed to the table."""
+assert MANIPULATION.factor_names == FACTOR_NAMES and MANIPULATION.constant_factors == CONSTANT_FACTORS
+assert MANIPULATION.contact_groups == CONTACT_GROUPS

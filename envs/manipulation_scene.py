@@ -38,10 +38,12 @@ from robosuite.models.tasks import ManipulationTask
 
 from envs.manipulation_control import OSCPositionTorques
 from envs.manipulation_layout import (
-    FIXED_HALF, MARKER_RADIUS, MARKERS, MOV_BODY, MOV_HALF, RAND_BODY, ROBOT, STATIC, TABLE_SIZE, TABLE_TOP, UNM_BODY,
+    FIXED_HALF, MANIPULATION, MARKER_RADIUS, MOV_HALF, TABLE_SIZE, TABLE_TOP, SceneLayout,
 )
 
 GRIPPER_JOINTS = ("finger_joint1", "finger_joint2")
+_MOVABLE_RGBA = ([1, 0, 0, 1], [1, 0.5, 0, 1], [0.8, 0, 0.8, 1], [1, 1, 0, 1])
+_KINEMATIC_RGBA = {"unm": [0, 0.8, 0, 1], "rand": [0, 0, 1, 1]}
 """The two finger joints of the parallel gripper: the chapter's two gripper joints."""
 
 
@@ -64,20 +66,22 @@ class CausalTableScene(RobosuiteManipulationEnv):
     """The table scene. The arm runs robosuite's OSC_POSITION controller with *absolute* world-frame
     goals and a fixed orientation goal (see :meth:`reset_scene`); the gripper takes one scalar.
 
-    :meth:`step_to` advances one policy step; :attr:`contacts` is then the symmetric
-    boolean ``[5, 5]`` matrix (groups :data:`envs.manipulation_layout.CONTACT_GROUPS`) of the body
-    classes that touched in any sub-step, and the kinematic bodies have moved linearly from their
-    old to their new targets over the step.
+    ``layout`` says which cubes and markers the table holds (chapter 3's scene by default, chapter 4's
+    block scene: :data:`envs.manipulation_layout.BLOCK`). :meth:`step_to` advances one policy step;
+    :attr:`contacts` is then the symmetric boolean matrix over ``layout.contact_groups`` (``[5, 5]``
+    in chapter 3's scene) of the body classes that touched in any sub-step, and the kinematic bodies
+    have moved linearly from their old to their new targets over the step.
     """
 
-    def __init__(self, *, robot: str = "UR5e", control_freq: int = 10) -> None:
+    def __init__(self, *, robot: str = "UR5e", control_freq: int = 10, layout: SceneLayout = MANIPULATION) -> None:
         controller = load_composite_controller_config(robot=robot)
         # robosuite 1.5.2 does not implement OSC position_limits (it raises), and a "delta" OSC_POSITION
         # re-reads the achieved orientation as its goal every step (so it drifts under contact). We send
         # absolute goals (clipped to the workspace by the caller) in "desired" mode: the orientation goal
         # then stays the one the arm started with.
         controller["body_parts"]["right"].update(type="OSC_POSITION", input_type="absolute", input_ref_frame="world")
-        self.contacts = np.zeros((5, 5), dtype=bool)
+        self.layout = layout
+        self.contacts = np.zeros((len(layout.contact_groups),) * 2, dtype=bool)
         self._kinematic_from = self._kinematic_path = np.zeros((0, 3))
         self._substep = 0
         self.robosuite_controller = False
@@ -108,17 +112,18 @@ class CausalTableScene(RobosuiteManipulationEnv):
         robot_model.set_base_xpos(robot_model.base_xpos_offset["table"](TABLE_SIZE[0]))
         arena = TableArena(table_full_size=TABLE_SIZE, table_offset=TABLE_TOP)
         arena.set_origin([0, 0, 0])
-        self.mov = BoxObject("mov", size=[MOV_HALF] * 3, rgba=[1, 0, 0, 1])
-        self.unm = BoxObject("unm", size=[FIXED_HALF] * 3, rgba=[0, 0.8, 0, 1], joints=None)
-        self.rand = BoxObject("rand", size=[FIXED_HALF] * 3, rgba=[0, 0, 1, 1], joints=None)
-        for kinematic in (self.unm, self.rand):
+        self.movables = [BoxObject(name, size=[MOV_HALF] * 3, rgba=_MOVABLE_RGBA[k % len(_MOVABLE_RGBA)])
+                         for k, name in enumerate(self.layout.movable)]
+        self.kinematics = [BoxObject(name, size=[FIXED_HALF] * 3, rgba=_KINEMATIC_RGBA.get(name, [0.5] * 3 + [1]),
+                                     joints=None) for name in self.layout.kinematic]
+        for kinematic in self.kinematics:
             kinematic.get_obj().set("mocap", "true")
-        for name in MARKERS:
+        for name in self.layout.markers:
             body = ET.SubElement(arena.worldbody, "body", name=name, mocap="true", pos="0 0 -1")
             ET.SubElement(body, "geom", name=f"{name}_g", type="cylinder", size=f"{MARKER_RADIUS} 0.001",
                           rgba="0 0 0 1", contype="0", conaffinity="0", group="1")
         self.model = ManipulationTask(mujoco_arena=arena, mujoco_robots=[robot_model],
-                                      mujoco_objects=[self.mov, self.unm, self.rand])
+                                      mujoco_objects=[*self.movables, *self.kinematics])
 
     def _setup_observables(self) -> OrderedDict:
         return OrderedDict()  # the gymnasium env reads the simulator directly; this saves ~10% per step
@@ -169,20 +174,28 @@ class CausalTableScene(RobosuiteManipulationEnv):
     def gripper_qpos(self) -> np.ndarray:
         return self.sim.data.qpos[self.gripper_qpos_addr].copy()
 
-    def mov_pos(self) -> np.ndarray:
-        return self.sim.data.qpos[self.mov_qpos_addr:self.mov_qpos_addr + 3].copy()
+    def mov_pos(self, k: int = 0) -> np.ndarray:
+        """Position of movable cube ``k`` (``mov`` in chapter 3's scene)."""
+        a = self.mov_qpos_addr[k]
+        return self.sim.data.qpos[a:a + 3].copy()
 
-    def mov_quat(self) -> np.ndarray:
-        return self.sim.data.qpos[self.mov_qpos_addr + 3:self.mov_qpos_addr + 7].copy()
+    def movable_pos(self) -> np.ndarray:
+        """``[M, 3]`` positions of the movable cubes."""
+        return np.stack([self.mov_pos(k) for k in range(len(self.layout.movable))])
 
-    def set_mov_pose(self, pos: np.ndarray, quat: np.ndarray) -> None:
-        """Place ``mov`` (quat is w, x, y, z) at rest."""
-        a = self.mov_qpos_addr
+    def mov_quat(self, k: int = 0) -> np.ndarray:
+        a = self.mov_qpos_addr[k]
+        return self.sim.data.qpos[a + 3:a + 7].copy()
+
+    def set_mov_pose(self, pos: np.ndarray, quat: np.ndarray, k: int = 0) -> None:
+        """Place movable cube ``k`` (quat is w, x, y, z) at rest."""
+        a, v = self.mov_qpos_addr[k], self.mov_qvel_addr[k]
         self.sim.data.qpos[a:a + 7] = np.concatenate([pos, quat])
-        self.sim.data.qvel[self.mov_qvel_addr:self.mov_qvel_addr + 6] = 0.0
+        self.sim.data.qvel[v:v + 6] = 0.0
 
     def kinematic_pos(self) -> np.ndarray:
-        """``[5, 3]`` positions of ``unm``, ``rand``, ``mk1``, ``mk2``, ``mk3``."""
+        """``[K, 3]`` positions of the kinematic bodies (``layout.mocap``: in chapter 3's scene ``unm``,
+        ``rand``, ``mk1``, ``mk2``, ``mk3``)."""
         return self.sim.data.mocap_pos[self.kinematic_mocap].copy()
 
     def set_kinematic_pose(self, pos: np.ndarray, quat: np.ndarray | None = None) -> None:
@@ -197,12 +210,13 @@ class CausalTableScene(RobosuiteManipulationEnv):
         prefix = self.robots[0].gripper["right"].naming_prefix
         joints = [m.joint(prefix + j).id for j in GRIPPER_JOINTS]
         self.gripper_qpos_addr = m.jnt_qposadr[joints]
-        mov_joint = m.joint(self.mov.joints[0]).id
-        self.mov_qpos_addr, self.mov_qvel_addr = int(m.jnt_qposadr[mov_joint]), int(m.jnt_dofadr[mov_joint])
-        bodies = [self.unm.root_body, self.rand.root_body, *MARKERS]
+        joints = [m.joint(cube.joints[0]).id for cube in self.movables]
+        self.mov_qpos_addr = [int(m.jnt_qposadr[j]) for j in joints]
+        self.mov_qvel_addr = [int(m.jnt_dofadr[j]) for j in joints]
+        bodies = [cube.root_body for cube in self.kinematics] + list(self.layout.markers)
         self.kinematic_mocap = np.array([m.body_mocapid[m.body(b).id] for b in bodies])
-        self.geom_group = _geom_groups(m, self.robots[0].robot_model.root_body, self.mov.root_body,
-                                       self.unm.root_body, self.rand.root_body)
+        cubes = [cube.root_body for cube in (*self.movables, *self.kinematics)]
+        self.geom_group = _geom_groups(m, self.robots[0].robot_model.root_body, cubes)
 
     def _prepare_substeps(self) -> None:
         """What every physics sub-step uses, resolved once."""
@@ -240,13 +254,14 @@ class CausalTableScene(RobosuiteManipulationEnv):
         self.contacts[groups[second], groups[first]] = True
 
 
-def _geom_groups(m: Any, robot_root: str, mov: str, unm: str, rand: str) -> np.ndarray:
-    """Contact group of every geom: the moving links of the robot (its pedestal and base, welded to
-    the world, always touch the floor and are static scenery), the three cubes, the static rest."""
-    groups = np.full(m.ngeom, STATIC, dtype=np.int64)
+def _geom_groups(m: Any, robot_root: str, cubes: list[str]) -> np.ndarray:
+    """Contact group of every geom: the moving links of the robot (0; its pedestal and base, welded
+    to the world, always touch the floor and are static scenery), the cubes (1, 2, ... in order), the
+    static rest (last)."""
+    groups = np.full(m.ngeom, len(cubes) + 1, dtype=np.int64)
     body = m.geom_bodyid
     robot = (m.body_rootid[body] == m.body(robot_root).id) & (m.body_weldid[body] != 0)
-    groups[robot] = ROBOT
-    for name, group in ((mov, MOV_BODY), (unm, UNM_BODY), (rand, RAND_BODY)):
+    groups[robot] = 0
+    for group, name in enumerate(cubes, start=1):
         groups[body == m.body(name).id] = group
     return groups

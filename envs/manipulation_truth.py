@@ -42,50 +42,83 @@ the identifiable scores leave out the columns of
 
 Resulting classes (:func:`causal.abstraction.cdl_abstraction`): controllable ``eef``, ``grp``,
 ``mov``; action-relevant ``unm``, ``rand``; action-irrelevant ``mk1``-``mk3``.
+
+**Several movable cubes** (chapter 4's block scene, :data:`envs.manipulation_layout.BLOCK`): force
+travels through every chain of touching movable bodies, so the rule above applies to each connected
+group of the robot and the movable cubes in contact during the step: every member depends on every
+other (full blocks), every member on the kinematic cubes any member touches, and every cube in the
+robot's group on the action. With one movable cube this is exactly the rule above.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from envs.manipulation_layout import (
-    EEF, GRP, MOV, MOV_BODY, NUM_FACTORS, RAND, RAND_BODY, ROBOT, STATIC, UNM, UNM_BODY,
-)
+from envs.manipulation_layout import MANIPULATION, NUM_FACTORS, SceneLayout
 
 ACTION = NUM_FACTORS
-"""Column of the action in a graph."""
-_ROBOT_ROWS = np.r_[EEF, GRP]
-_GROUP_FACTORS = {ROBOT: _ROBOT_ROWS, MOV_BODY: np.r_[MOV], UNM_BODY: np.r_[UNM], RAND_BODY: np.r_[RAND]}
+"""Column of the action in a manipulation-scene graph (``layout.num_factors`` in general)."""
 
 
-def _no_contact_graph() -> np.ndarray:
-    graph = np.eye(NUM_FACTORS, NUM_FACTORS + 1, dtype=np.uint8)
-    for block in (EEF, GRP, MOV):
+def _rows(layout: SceneLayout, body: str) -> np.ndarray:
+    objects = ("eef", "grp") if body == "robot" else (body,)
+    return np.concatenate([np.arange(layout.num_factors)[layout.factor_slice(o)] for o in objects])
+
+
+def _no_contact_graph(layout: SceneLayout) -> np.ndarray:
+    n = layout.num_factors
+    graph = np.eye(n, n + 1, dtype=np.uint8)
+    for obj in ("eef", "grp", *layout.movable):
+        block = layout.factor_slice(obj)
         graph[block, block] = 1
-    graph[_ROBOT_ROWS, ACTION] = 1
+    graph[_rows(layout, "robot"), n] = 1
     return graph
 
 
-def local_graph(contacts: np.ndarray) -> np.ndarray:
-    """The graph of one step from its symmetric boolean ``[5, 5]`` contact matrix (groups robot,
-    mov, unm, rand, static: :data:`envs.manipulation_layout.CONTACT_GROUPS`)."""
+def _touching_groups(touch: np.ndarray, dynamic: list[int]) -> list[list[int]]:
+    """Connected components of the contact graph among the ``dynamic`` groups (robot, movable cubes)."""
+    groups, seen = [], set()
+    for first in dynamic:
+        if first in seen:
+            continue
+        component, frontier = [first], [first]
+        seen.add(first)
+        while frontier:
+            body = frontier.pop()
+            for other in dynamic:
+                if other not in seen and touch[body, other]:
+                    seen.add(other)
+                    component.append(other)
+                    frontier.append(other)
+        groups.append(sorted(component))
+    return groups
+
+
+def local_graph(contacts: np.ndarray, layout: SceneLayout = MANIPULATION) -> np.ndarray:
+    """The graph of one step from its symmetric boolean contact matrix over ``layout.contact_groups``
+    (robot, the cubes, static: :data:`envs.manipulation_layout.CONTACT_GROUPS` in chapter 3's scene)."""
     touch = np.asarray(contacts, dtype=bool) & ~np.eye(len(contacts), dtype=bool)
-    graph = _no_contact_graph()
-    if touch[ROBOT].any():
-        graph[np.ix_(_ROBOT_ROWS, _ROBOT_ROWS)] = 1
-    held = bool(touch[ROBOT, MOV_BODY])
-    for group in ([ROBOT, MOV_BODY],) if held else ([ROBOT], [MOV_BODY]):
-        rows = np.concatenate([_GROUP_FACTORS[body] for body in group])
-        for kinematic in (UNM_BODY, RAND_BODY):
-            if touch[group, kinematic].any():
-                graph[np.ix_(rows, _GROUP_FACTORS[kinematic])] = 1
-    if held:
-        graph[np.ix_(_GROUP_FACTORS[MOV_BODY], _ROBOT_ROWS)] = 1
-        graph[np.ix_(_ROBOT_ROWS, _GROUP_FACTORS[MOV_BODY])] = 1
-        graph[_GROUP_FACTORS[MOV_BODY], ACTION] = 1
+    names, n = layout.contact_groups, layout.num_factors
+    graph = _no_contact_graph(layout)
+    robot_rows = _rows(layout, "robot")
+    if touch[0].any():
+        graph[np.ix_(robot_rows, robot_rows)] = 1
+    dynamic = list(range(1 + len(layout.movable)))
+    kinematic = range(len(dynamic), len(dynamic) + len(layout.kinematic))
+    for group in _touching_groups(touch, dynamic):
+        rows = np.concatenate([_rows(layout, names[b]) for b in group])
+        for k in kinematic:
+            if touch[group, k].any():
+                graph[np.ix_(rows, _rows(layout, names[k]))] = 1
+        for a in group:
+            for b in group:
+                if a != b:
+                    graph[np.ix_(_rows(layout, names[a]), _rows(layout, names[b]))] = 1
+        if 0 in group:
+            graph[rows, n] = 1
     return graph
 
 
-def global_graph() -> np.ndarray:
+def global_graph(layout: SceneLayout = MANIPULATION) -> np.ndarray:
     """The one-step ground truth: the union of the local graphs, i.e. everything touching."""
-    everything = np.ones((STATIC + 1, STATIC + 1), dtype=bool)
-    return local_graph(everything)
+    everything = np.ones((len(layout.contact_groups),) * 2, dtype=bool)
+    return local_graph(everything, layout)

@@ -44,7 +44,7 @@ class EnvOptions:
     episode_length: int = doc(0, "steps per episode (0: the environment's default)")
     room_size: int = doc(0, "household tasks and 2D Minecraft: side of the room in cells (0: the env's default)")
     distractors: str = doc("20,20", "chapter 4's distractor factors, 'controllable,uncontrollable': random "
-                                    "projections of the action and U(-1, 1) noise (chemical-distractors)")
+                                    "projections of the action and U(-1, 1) noise (chemical-distractors, block)")
 
     def __post_init__(self) -> None:
         if self.episode_length < 0 or self.room_size < 0:
@@ -164,6 +164,11 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              options=("episode_length",), truth="global+local",
              constant_factors=manipulation_layout.CONSTANT_FACTORS,
              skills="envs.skills:SkillPolicy", skill_collection=True, local_scoring=True),
+    EnvEntry("block", "causeway/Block-v0", "envs.block:BlockEnv",
+             "chapter 4's block scene (CBM): UR5e, movable mov1-mov3, fixed unm, 20+20 distractors; Pick, Stack",
+             options=("episode_length", "distractors"), truth="global+local",
+             constant_factors=manipulation_layout.BLOCK.constant_factors,
+             tasks=dict.fromkeys(("pick", "stack"), "block"), task_kwarg="task", local_scoring=True),
     EnvEntry("installing-printer", "causeway/InstallingPrinter-v0", "envs.household.printer:InstallingPrinterEnv",
              "Mini-BEHAVIOR Installing Printer (ch. 6): pick the printer, put it on the table, turn it on",
              options=_GRID, constant_factors=("table.clean",), check=_check_by_building("installing-printer"),
