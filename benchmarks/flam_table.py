@@ -168,7 +168,10 @@ def evaluate(model: nn.Module, autoencoder: FSQAutoencoder, features: torch.Tens
     results = {"psnr": float(psnr(images, target).mean()), **dci_keys(dci(codes, actions.flatten(0, 1), classes=5)),
                **dci_keys(position_dci(codes, positions[:, 1:].flatten(0, 1), grid_size), "_positions_latent")}
     if states is not None:
-        results.update(dci_keys(position_dci(states, positions.flatten(0, 1), grid_size), "_positions"))
+        scores = position_dci(states, positions.flatten(0, 1), grid_size)
+        share = scores.importance / scores.importance.sum(0, keepdim=True).clamp_min(1e-12)
+        results.update({**dci_keys(scores, "_positions"),
+                        "positions_importance": [[round(float(v), 3) for v in row] for row in share.T]})
     return results
 
 
@@ -195,6 +198,13 @@ def agent_slots(attention: torch.Tensor, labels: torch.Tensor, num_agents: int) 
     tokens = labels[:, :, ::4, ::4].flatten(2).long()
     owned = torch.stack([(tokens == 1 + i).float() for i in range(num_agents)], dim=2)
     return torch.einsum("btkn,btin->btik", attention, owned).argmax(-1)
+
+
+def agent_slot_share(slots: torch.Tensor, num_slots: int) -> list[list[float]]:
+    """``[N][K]``: the share of frames in which slot ``k`` holds agent ``i`` (:func:`agent_slots`); one
+    slot per agent across videos is what lets a probe find an agent in the same factor every time."""
+    counts = torch.nn.functional.one_hot(slots.flatten(0, 1), num_slots).float().mean(0)
+    return [[round(float(v), 3) for v in row] for row in counts]
 
 
 def slot_sharing(slots: torch.Tensor) -> dict[str, float]:
@@ -250,7 +260,8 @@ def main(args: Args) -> dict[str, dict[str, float]]:
         if isinstance(model, FLAM):
             with torch.no_grad():
                 attention = model.factorizer(test_features)[1]
-            results[name].update(slot_sharing(agent_slots(attention, torch.from_numpy(test["labels"]), env.num_agents)))
+            slots = agent_slots(attention, torch.from_numpy(test["labels"]), env.num_agents)
+            results[name].update({**slot_sharing(slots), "agent_slot_share": agent_slot_share(slots, config.num_slots)})
         print(f"{name}: {json.dumps(results[name])}", flush=True)
     results["random"] = random_codes(actions, positions, config, env.grid_size, args.seed)
     print_table(results, args)

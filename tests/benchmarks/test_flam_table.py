@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmarks.flam_table import agent_slots, main, parse_args, slot_sharing, train_lam, train_two_stage
+from benchmarks.flam_table import agent_slot_share, agent_slots, main, parse_args, slot_sharing, train_lam, train_two_stage
 from causal.flam import FLAM, FLAMConfig
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -28,6 +28,7 @@ def test_flam_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str
     # Table 8.2's reading (factor states against positions) for the slot model and the chance row alone
     assert all(0.0 <= results[key][f"dci_{x}_positions"] <= 1.0 for key in ("flam", "random") for x in "dci")
     assert "dci_d_positions" not in results["monolithic"] and "psnr" not in results["random"]
+    assert len(results["flam"]["positions_importance"]) == 4 and len(results["flam"]["agent_slot_share"][0]) == 5
     assert 0.0 <= results["flam"]["every_agent_own_slot"] <= 1.0
     assert "| flam |" in capsys.readouterr().out
 
@@ -44,6 +45,7 @@ def test_agent_slots_and_sharing_on_a_hand_built_attention() -> None:
     assert slots.tolist() == [[[1, 1, 2]]]
     sharing = slot_sharing(slots)
     assert sharing == {"agents_0_1_share_slot": 1.0, "grouped_as_actions": 1.0, "every_agent_own_slot": 0.0}
+    assert agent_slot_share(slots, num_slots=3) == [[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 
 
 def test_the_two_stage_baseline_trains_slots_first_then_latent_actions_on_them_frozen(tmp_path: Path) -> None:
