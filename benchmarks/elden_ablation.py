@@ -1,5 +1,7 @@
 """Table 5.2 (chapter 5): ablations of ELDEN's local-graph detection (no Mixup & no regulariser,
-lambda = 0, a lambda sweep), each a switch of :class:`causal.elden.ELDENConfig`.
+lambda = 0, a lambda sweep), each a switch of :class:`causal.elden.ELDENConfig`; and Table 5.1's
+learned-mask baselines (``input-mask``, ``attention-mask``: :mod:`causal.elden_masks`), each its own
+model on ELDEN's network, trained and scored the same way (its graph: the learned mask).
 
 As the chapter does for Tables 5.1-5.2 ("we train the dynamics model of each method ... on
 pre-collected transition data"), every variant trains an :class:`~causal.elden_trainer.ELDENTrainer`
@@ -25,9 +27,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.local_graph_table import BUDGETS, _mean_sd, score_estimators, scripted_transitions
+from benchmarks.local_graph_table import BUDGETS, _mean_sd, score_estimators, score_with, scripted_transitions
 from causal.elden import ELDENConfig
+from causal.elden_masks import MaskConfig, MaskTrainer
 from causal.elden_trainer import ELDENTrainer
+from causal.methods.elden import MASK_ESTIMATORS
 from causal.factored import FactorLayout
 from envs.registry import EnvOptions, env_entry
 from services.env_worker.core import default_policy
@@ -41,19 +45,27 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "lambda-1e-3": {"grad_reg": 1e-3},
     "lambda-1e-4": {"grad_reg": 1e-4},
     "lambda-1e-5": {"grad_reg": 1e-5},
+    "input-mask": {"mixup": False, "grad_reg": 0.0},
+    "attention-mask": {"mixup": False, "grad_reg": 0.0},
 }
 """ELDENConfig overrides per variant (the rest: the defaults). ``no-mixup`` keeps the default lambda
-(not a row of the chapter's table)."""
+(not a row of the chapter's table). The mask baselines use neither ELDEN's regulariser nor its Mixup."""
+MASK_VARIANTS = {"input-mask": MaskConfig(kind="input"), "attention-mask": MaskConfig(kind="attention")}
+"""Table 5.1's learned-mask baselines: their mask (the rest of the model: ELDENConfig's defaults)."""
 TABLE_ROWS = {"no-mixup-no-reg": "no Mixup & no Reg", "no-mixup": "no Mixup (lambda default)",
               "lambda-0": "no Reg, i.e. lambda = 0", "lambda-1e-1": "lambda = 1e-1", "lambda-1e-2": "lambda = 1e-2",
-              "lambda-1e-3": "lambda = 1e-3", "lambda-1e-4": "lambda = 1e-4", "lambda-1e-5": "lambda = 1e-5"}
+              "lambda-1e-3": "lambda = 1e-3", "lambda-1e-4": "lambda = 1e-4", "lambda-1e-5": "lambda = 1e-5",
+              "input-mask": "Input Mask (Table 5.1)", "attention-mask": "Attn Mask (Table 5.1)"}
 CHAPTER = {"thawing": {"no-mixup-no-reg": (0.48, 0.42), "lambda-0": (0.57, 0.52), "lambda-1e-1": (0.68, 0.57),
                        "lambda-1e-2": (0.71, 0.57), "lambda-1e-3": (0.64, 0.55), "lambda-1e-4": (0.65, 0.55),
                        "lambda-1e-5": (0.63, 0.53)},
            "cleaning-car": {"no-mixup-no-reg": (0.44, 0.27), "lambda-0": (0.54, 0.42), "lambda-1e-1": (0.73, 0.58),
                             "lambda-1e-2": (0.76, 0.60), "lambda-1e-3": (0.78, 0.66), "lambda-1e-4": (0.75, 0.60),
                             "lambda-1e-5": (0.72, 0.57)}}
-"""Table 5.2 (ROC AUC, F1): Thawing, CarWash."""
+"""Table 5.2 (ROC AUC, F1): Thawing, CarWash; the mask baselines' rows are Table 5.1's."""
+for _env, _rows in (("thawing", {"input-mask": (0.50, 0.40), "attention-mask": (0.45, 0.47)}),
+                    ("cleaning-car", {"input-mask": (0.50, 0.32), "attention-mask": (0.47, 0.43)})):
+    CHAPTER[_env].update(_rows)
 DEFAULT_VARIANTS = ["no-mixup-no-reg", "lambda-0", "lambda-1e-1", "lambda-1e-2", "lambda-1e-3"]
 
 
@@ -88,9 +100,10 @@ def collect(env: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np
 
 
 def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], updates: int,
-          seed: int) -> tuple[ELDENTrainer, dict[str, float]]:
-    """``updates`` steps of an ELDENTrainer, each on ``members x member_batch`` rows drawn uniformly."""
-    trainer = ELDENTrainer(layout, cfg, seed=seed)
+          seed: int, mask: MaskConfig | None = None) -> tuple[ELDENTrainer, dict[str, float]]:
+    """``updates`` steps of an ELDENTrainer (a MaskTrainer with ``mask``), each on ``members x
+    member_batch`` rows drawn uniformly."""
+    trainer = ELDENTrainer(layout, cfg, seed=seed) if mask is None else MaskTrainer(layout, cfg, mask, seed=seed)
     rng = np.random.default_rng(seed + 1)
     tensors = tuple(torch.from_numpy(x) for x in data)
     stats: dict[str, float] = {}
@@ -103,28 +116,33 @@ def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], 
 def run_variant(env: str, seed: int, variant: str, data: tuple, layout: FactorLayout, scripted: tuple,
                 updates: int) -> tuple[dict[str, Any], ELDENTrainer]:
     cfg = dataclasses.replace(ELDENConfig(), **VARIANTS[variant])
+    mask = MASK_VARIANTS.get(variant)
     started = time.process_time()
-    trainer, stats = train(layout, cfg, data, updates, seed)
+    trainer, stats = train(layout, cfg, data, updates, seed, mask)
     trained = time.process_time() - started
-    scored = score_estimators("elden", trainer.model, scripted)
-    return {"env": env, "seed": seed, "variant": variant, "config": VARIANTS[variant], "updates": updates,
+    scored = (score_estimators("elden", trainer.model, scripted) if mask is None
+              else score_with({variant: MASK_ESTIMATORS[variant]}, trainer.model, scripted))
+    config = VARIANTS[variant] if mask is None else {**VARIANTS[variant], "mask": dataclasses.asdict(mask)}
+    return {"env": env, "seed": seed, "variant": variant, "config": config, "updates": updates,
             "transitions": int(len(data[0])), "final_stats": stats, "train_cpu_s": trained,
             "estimators": scored}, trainer
 
 
 def table(results: list[dict[str, Any]]) -> str:
-    """Table 5.2's layout: one row per variant, ROC AUC / PR AUC / best F1 per env beside the chapter's."""
+    """Table 5.2's layout: one row per variant, ROC AUC / PR AUC / best F1 per env beside the chapter's
+    (a mask baseline's figures are its mask's, and it has no Attn column)."""
     lines = ["| variant | env | seeds | ROC AUC | PR AUC | best F1 | per entry: ROC AUC / PR AUC / best F1 | "
              "Attn ROC AUC / best F1 | chapter ROC AUC / F1 |", "|---|---|---|---|---|---|---|---|---|"]
     for variant in dict.fromkeys(r["variant"] for r in results):
         for env in dict.fromkeys(r["env"] for r in results if r["variant"] == variant):
             got = [r["estimators"] for r in results if r["variant"] == variant and r["env"] == env]
-            stat = lambda name, key: _mean_sd([g[name][key] for g in got])  # noqa: E731
-            entry = lambda key: _mean_sd([g["jacobian"]["per_entry"][key] for g in got])  # noqa: E731
+            own = variant if variant in MASK_VARIANTS else "jacobian"
+            stat = lambda name, key: _mean_sd([g[name][key] for g in got if name in g])  # noqa: E731
+            entry = lambda key: _mean_sd([g[own]["per_entry"][key] for g in got])  # noqa: E731
             chapter = CHAPTER.get(env, {}).get(variant)
             cell = "{:.2f} / {:.2f}".format(*chapter) if chapter else "-"
-            lines.append(f"| {TABLE_ROWS[variant]} | {env} | {len(got)} | {stat('jacobian', 'roc_auc')} | "
-                         f"{stat('jacobian', 'pr_auc')} | {stat('jacobian', 'best_f1')} | "
+            lines.append(f"| {TABLE_ROWS[variant]} | {env} | {len(got)} | {stat(own, 'roc_auc')} | "
+                         f"{stat(own, 'pr_auc')} | {stat(own, 'best_f1')} | "
                          f"{entry('roc_auc')} / {entry('pr_auc')} / {entry('best_f1')} | "
                          f"{stat('attention', 'roc_auc')} / {stat('attention', 'best_f1')} | {cell} |")
     return "\n".join(lines)

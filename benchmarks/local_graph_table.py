@@ -69,7 +69,8 @@ CHAPTER = {"thawing": {"ELDEN": (0.71, 0.57), "pCMI": (0.55, 0.60), "Attn": (0.6
            "manipulation": {"ELDEN": (0.66, 0.25), "pCMI": (0.60, 0.28), "Attn": (0.51, 0.22),
                             "Input Mask": (0.50, 0.08), "Attn Mask": (0.52, 0.13)}}
 """Table 5.1 (ROC AUC, F1): Thawing, CarWash, Kitchen."""
-ROW_NAMES = {"jacobian": "ELDEN", "pcmi": "pCMI", "attention": "Attn"}
+ROW_NAMES = {"jacobian": "ELDEN", "pcmi": "pCMI", "attention": "Attn", "input-mask": "Input Mask",
+             "attention-mask": "Attn Mask"}
 """Our estimator names -> Table 5.1's rows."""
 ESTIMATORS = {"elden": "causal.methods.elden:LOCAL_ESTIMATORS"}
 """Methods whose models support more local-graph estimators than the one the evaluator runs."""
@@ -121,10 +122,15 @@ def score_estimators(method: str, model: Any, transitions: tuple[np.ndarray, ...
     """Every estimator of ``method`` on ``model``, scored on ``transitions`` (:func:`scripted_transitions`):
     pooled over entries (the table's figures), and per entry under ``per_entry``
     (:func:`~causal.graph_metrics.score_local_graphs_per_entry`)."""
+    return score_with(estimators(method), model, transitions)
+
+
+def score_with(found: dict[str, Any], model: Any, transitions: tuple[np.ndarray, ...]) -> dict[str, dict[str, float]]:
+    """These estimators (name -> estimator) on ``model``, scored as :func:`score_estimators` does."""
     state, action, next_state, truth = transitions
     tensors = tuple(torch.from_numpy(x) for x in (state, action, next_state))
     scored = {}
-    for name, estimator in estimators(method).items():
+    for name, estimator in found.items():
         with torch.no_grad():
             scores = estimator.scores(model, *tensors)
         scored[name] = score_local_graphs(np.asarray(scores), truth, float(estimator.threshold(model)))

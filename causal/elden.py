@@ -29,6 +29,7 @@ from proto.settings import doc
 
 LOG_2PI = math.log(2 * math.pi)
 GRAPH_OF = ("probability", "log_probability")
+MODULATION_EPS = 1e-6
 
 
 @dataclass(frozen=True)
@@ -118,16 +119,49 @@ def _norm(z: torch.Tensor, gain: torch.Tensor, shift: torch.Tensor) -> torch.Ten
 
 
 def _attention(p: dict[str, torch.Tensor], prefix: str, query: torch.Tensor, tokens: torch.Tensor,
-               heads: int) -> tuple[torch.Tensor, torch.Tensor]:
+               heads: int, modulation: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Multi-head attention of ``query`` [M, B, Q, D] over ``tokens`` [M, B, T, D] -> ([M, B, Q, D],
-    weights [M, B, H, Q, T])."""
+    weights [M, B, H, Q, T]).
+
+    With ``modulation`` (values in [0, 1] broadcastable to the weights), the attention is kernel
+    modulated (Rahaman et al. 2021; Weiss et al. 2022): ``K exp(s) / (eps + sum K exp(s))`` over the
+    keys, so a key whose entry is 0 is not read at all, and a query whose entries are all 0 reads nothing."""
     d = tokens.shape[-1]
     q = _linear(query, p[prefix + "_wq"], p[prefix + "_bq"]).unflatten(-1, (heads, d // heads)).transpose(2, 3)
     kv = _linear(tokens, p[prefix + "_wkv"], p[prefix + "_bkv"]).unflatten(-1, (2, heads, d // heads))
     k, v = kv.select(-3, 0).transpose(2, 3), kv.select(-3, 1).transpose(2, 3)
-    weights = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(d // heads), dim=-1)
+    scores = q @ k.transpose(-1, -2) / math.sqrt(d // heads)
+    if modulation is None:
+        weights = torch.softmax(scores, dim=-1)
+    else:
+        scaled = modulation * torch.exp(scores - scores.amax(dim=-1, keepdim=True).detach())
+        weights = scaled / (MODULATION_EPS + scaled.sum(dim=-1, keepdim=True))
     mixed = (weights @ v).transpose(2, 3).flatten(-2)
     return _linear(mixed, p[prefix + "_wo"], p[prefix + "_bo"]), weights
+
+
+def token_features(p: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """Feature extraction: each token's own MLP, ``x`` [M, B, T, W] -> ``phi`` [M, B, T, D]."""
+    h = torch.relu(torch.einsum("mbtw,mtwh->mbth", x, p["token_w1"]) + p["token_b1"][:, None])
+    return torch.einsum("mbth,mthd->mbtd", h, p["token_w2"]) + p["token_b2"][:, None]
+
+
+def interaction_layer(p: dict[str, torch.Tensor], layer: int, theta: torch.Tensor, heads: int,
+                      modulation: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One pre-norm self-attention block (attention, then feed-forward, each with a residual) of
+    ``theta`` [M, B, T, D]; returns the new ``theta`` and the attention weights [M, B, H, T, T]."""
+    lp = {k[3:]: v[:, layer] for k, v in p.items() if k.startswith("sa_")}
+    z = _norm(theta, p["ln1_g"][:, layer], p["ln1_b"][:, layer])
+    mixed, weights = _attention(lp, "at", z, z, heads, modulation)
+    theta = theta + mixed
+    z = _norm(theta, p["ln2_g"][:, layer], p["ln2_b"][:, layer])
+    return theta + _linear(torch.relu(_linear(z, lp["ff_w1"], lp["ff_b1"])), lp["ff_w2"], lp["ff_b2"]), weights
+
+
+def output_heads(p: dict[str, torch.Tensor], read: torch.Tensor) -> torch.Tensor:
+    """Each output factor's head on what its attention read, [M, B, d_S, D] -> raw outputs [M, B, d_S, O]."""
+    hidden = torch.relu(torch.einsum("mbjd,mjdp->mbjp", read, p["head_w1"]) + p["head_b1"][:, None])
+    return torch.einsum("mbjp,mjpo->mbjo", hidden, p["head_w2"]) + p["head_b2"][:, None]
 
 
 def ensemble_forward(p: dict[str, torch.Tensor], x: torch.Tensor, heads: int,
@@ -137,22 +171,15 @@ def ensemble_forward(p: dict[str, torch.Tensor], x: torch.Tensor, heads: int,
 
     Each sample's outputs depend on that sample's inputs only (no batch statistics), so the gradient
     of a sum over samples is every sample's own gradient."""
-    h = torch.relu(torch.einsum("mbtw,mtwh->mbth", x, p["token_w1"]) + p["token_b1"][:, None])
-    theta = torch.einsum("mbth,mthd->mbtd", h, p["token_w2"]) + p["token_b2"][:, None]
+    theta = token_features(p, x)
     maps = []
     for layer in range(p["ln1_g"].shape[1]):
-        lp = {k[3:]: v[:, layer] for k, v in p.items() if k.startswith("sa_")}
-        z = _norm(theta, p["ln1_g"][:, layer], p["ln1_b"][:, layer])
-        mixed, weights = _attention(lp, "at", z, z, heads)
-        theta = theta + mixed
-        z = _norm(theta, p["ln2_g"][:, layer], p["ln2_b"][:, layer])
-        theta = theta + _linear(torch.relu(_linear(z, lp["ff_w1"], lp["ff_b1"])), lp["ff_w2"], lp["ff_b2"])
+        theta, weights = interaction_layer(p, layer, theta, heads)
         maps.append(weights)
     outputs = p["head_w1"].shape[1]
     z = _norm(theta, p["lno_g"], p["lno_b"])
     read, out_weights = _attention(p, "out", z[:, :, :outputs], z, heads)
-    hidden = torch.relu(torch.einsum("mbjd,mjdp->mbjp", read, p["head_w1"]) + p["head_b1"][:, None])
-    return torch.einsum("mbjp,mjpo->mbjo", hidden, p["head_w2"]) + p["head_b2"][:, None], maps, out_weights
+    return output_heads(p, read), maps, out_weights
 
 
 class ELDENModel(nn.Module):

@@ -38,7 +38,7 @@ class ELDENTrainer:
     def __init__(self, layout: FactorLayout, cfg: ELDENConfig, seed: int = 0) -> None:
         torch.manual_seed(seed)
         self.cfg = cfg
-        self.model = ELDENModel(layout, cfg)
+        self.model = self.build_model(layout, cfg)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
         self.rng = np.random.default_rng(seed)
         self.updates = 0
@@ -47,6 +47,10 @@ class ELDENTrainer:
         ``cfg.prioritised``): ``(1 - exp(-error))^priority_alpha`` of the row's member."""
         discrete = bool(layout.categorical) or layout.action_kind == "categorical"
         self.uses_mixup = cfg.mixup and discrete
+
+    def build_model(self, layout: FactorLayout, cfg: ELDENConfig) -> ELDENModel:
+        """The model this trainer trains (a subclass may train a variant of ELDEN's network)."""
+        return ELDENModel(layout, cfg)
 
     @property
     def batch_size(self) -> int:

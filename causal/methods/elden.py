@@ -16,6 +16,7 @@ import torch
 
 from causal.elden import ELDENConfig, ELDENModel, model_from_config
 from causal.elden_graphs import attention_graphs, local_graphs
+from causal.elden_masks import MaskedELDENModel, mask_graphs
 from causal.elden_trainer import ELDENTrainer
 from causal.method import Method
 
@@ -48,6 +49,29 @@ class AttentionLocalGraph:
 
 LOCAL_ESTIMATORS = {"jacobian": JacobianLocalGraph(), "attention": AttentionLocalGraph()}
 """Every local-graph estimator an ELDEN model supports (the benchmark of Table 5.1 runs them all)."""
+
+
+class MaskLocalGraph:
+    """Table 5.1's "Input Mask" or "Attn Mask" baseline: the learned mask of a
+    :class:`~causal.elden_masks.MaskedELDENModel` (its own model, trained by :class:`~causal.elden_masks.MaskTrainer`),
+    averaged over members; an edge where the mask is open with probability at least 0.5."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind, self.name = kind, f"{kind}-mask"
+
+    def scores(self, model: MaskedELDENModel, state: torch.Tensor, action: torch.Tensor,
+               next_state: torch.Tensor) -> np.ndarray:
+        if getattr(model, "mask_cfg", None) is None or model.mask_cfg.kind != self.kind:
+            raise ValueError(f"the {self.name} estimator reads a MaskedELDENModel of kind {self.kind!r}")
+        return mask_graphs(model, state, action).numpy()
+
+    def threshold(self, model: MaskedELDENModel) -> float:
+        return 0.5
+
+
+MASK_ESTIMATORS = {"input-mask": MaskLocalGraph("input"), "attention-mask": MaskLocalGraph("attention")}
+"""The learned-mask baselines of Table 5.1 (ch. 5.3.1), each on a model of its own: not in
+:data:`LOCAL_ESTIMATORS`, whose estimators read the ELDEN model a run trains (see docs/methods/elden.md)."""
 
 METHOD = Method(
     name="elden",

@@ -21,7 +21,7 @@ def test_every_variant_is_a_valid_config_and_has_a_row() -> None:
     for name, overrides in elden_ablation.VARIANTS.items():
         cfg = dataclasses.replace(ELDENConfig(), **overrides)
         assert name in elden_ablation.TABLE_ROWS
-        assert cfg.mixup == (name not in ("no-mixup-no-reg", "no-mixup"))
+        assert cfg.mixup == (name not in ("no-mixup-no-reg", "no-mixup", *elden_ablation.MASK_VARIANTS))
     assert elden_ablation.VARIANTS["lambda-0"]["grad_reg"] == 0.0
     assert set(elden_ablation.CHAPTER["thawing"]) <= set(elden_ablation.VARIANTS)
 
@@ -62,6 +62,18 @@ def test_main_scores_each_variant_and_a_rerun_replaces_its_entry(tmp_path, capsy
         assert set(r["estimators"]) == {"jacobian", "attention"}
         assert 0.0 <= r["estimators"]["jacobian"]["roc_auc"] <= 1.0
     assert "| no Reg, i.e. lambda = 0 | thawing | 1 |" in capsys.readouterr().out
+
+
+def test_a_mask_baseline_trains_its_own_model_and_is_scored_by_its_mask(tmp_path, capsys) -> None:
+    elden_ablation.main(["--variants", "input-mask", "attention-mask", "--updates", "1", "--transitions", "200",
+                         "--episodes", "2", "--out", str(tmp_path)])
+    results = {r["variant"]: r for r in json.loads((tmp_path / "elden-ablation.json").read_text())}
+    for variant, kind in (("input-mask", "input"), ("attention-mask", "attention")):
+        assert set(results[variant]["estimators"]) == {variant}
+        assert results[variant]["config"]["mask"]["kind"] == kind
+        assert 0.0 <= results[variant]["estimators"][variant]["roc_auc"] <= 1.0
+    out = capsys.readouterr().out
+    assert "| Input Mask (Table 5.1) | thawing | 1 |" in out and "| 0.50 / 0.40 |" in out
 
 
 def test_bad_budgets_are_refused_before_anything_runs(tmp_path) -> None:
