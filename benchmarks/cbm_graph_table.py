@@ -1,6 +1,9 @@
-"""Table 4.1 and Figs. 4.5-4.6 on Chemical with distractors: implicit vs explicit CBM from the same data.
+"""Table 4.1 and Figs. 4.5-4.6 on Chemical with distractors or the block scene: implicit vs explicit CBM
+from the same data.
 
-For each seed: random-policy transitions of ``chemical-distractors`` (10% of episodes held out), then
+For each seed: random-policy transitions of ``chemical-distractors`` or ``block`` (``--env``; on block
+every other episode starts with a scripted grasp of ``mov1``, so that contacts occur; 10% of episodes
+held out), then
 CBM with implicit dynamics and CBM with explicit (CDL's) dynamics trained on the same data for the same
 number of updates. As the graph-evaluator does live, the dynamics CMI (eq. 4.3 / eq. 3.2) and the
 reward CMI are estimated on the held-out data every ``--estimate-every`` updates and averaged over
@@ -21,6 +24,7 @@ Writes ``<out>/cbm_table.json``, a markdown table to stdout and ``<out>/cbm_abst
 (which factors each abstraction keeps; Figs. 4.5-4.6).
 
     python -m benchmarks.cbm_graph_table --num-objects 3 --distractors 5,5 --updates 5000 --seeds 0 1 2
+    python -m benchmarks.cbm_graph_table --env block --task pick --distractors 20,20 --steps 5000 --updates 1000
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -44,22 +49,51 @@ from envs.registry import make_env
 from proto.messages import EnvSpec
 
 
-def collect(env_kwargs: dict[str, Any], steps: int, seed: int) -> tuple[EnvSpec, dict[str, np.ndarray]]:
-    """``steps`` random-policy transitions; ``heldout`` marks every tenth episode."""
-    env = make_env("chemical-distractors", **env_kwargs).unwrapped
-    rng = np.random.default_rng(seed)
+class CollectionPolicy:
+    """Uniformly random actions; on ``block``, every other episode opens with a scripted grasp of
+    ``mov1`` (random actions would rarely touch a cube)."""
+
+    def __init__(self, env: Any, env_name: str, seed: int) -> None:
+        self.env, self.grasps = env, env_name == "block"
+        self.rng, self.skill, self.episode = np.random.default_rng(seed), None, 0
+
+    def start_episode(self) -> None:
+        from envs.skills import grasp
+
+        self.skill = grasp("mov") if self.grasps and self.episode % 2 == 0 else None  # mov1 has mov's indices
+        self.episode += 1
+
+    def act(self, obs: np.ndarray) -> np.ndarray | int:
+        action = None if self.skill is None else self.skill.act(obs)
+        if action is not None:
+            return action
+        space = self.env.action_space
+        if isinstance(space, gym.spaces.Discrete):
+            return int(self.rng.integers(space.n))
+        return self.rng.uniform(space.low, space.high).astype(np.float32)
+
+
+def collect(env_kwargs: dict[str, Any], steps: int, seed: int, env_name: str = "chemical-distractors"
+            ) -> tuple[EnvSpec, dict[str, np.ndarray]]:
+    """``steps`` collection-policy transitions of ``env_name``; ``heldout`` marks every tenth episode."""
+    env = make_env(env_name, **env_kwargs).unwrapped
+    policy = CollectionPolicy(env, env_name, seed)
     obs, _ = env.reset(seed=seed)
+    policy.start_episode()
     rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "reward", "heldout")}
     episode = 0
     for _ in range(steps):
-        action = int(rng.integers(env.action_space.n))
-        nxt, reward, _, truncated, _ = env.step(action)
-        for key, value in zip(rows, (obs, [action], nxt, reward, episode % 10 == 9)):
+        action = policy.act(obs)
+        nxt, reward, terminated, truncated, _ = env.step(action)
+        for key, value in zip(rows, (obs, np.atleast_1d(action), nxt, reward, episode % 10 == 9)):
             rows[key].append(value)
         obs = nxt
-        if truncated:
+        if terminated or truncated:
             obs, episode = env.reset()[0], episode + 1
-    return env.env_spec(), {k: np.asarray(v, dtype=bool if k == "heldout" else np.float32) for k, v in rows.items()}
+            policy.start_episode()
+    spec = env.env_spec()
+    env.close()
+    return spec, {k: np.asarray(v, dtype=bool if k == "heldout" else np.float32) for k, v in rows.items()}
 
 
 def tensors(data: dict[str, np.ndarray], rows: np.ndarray) -> tuple[torch.Tensor, ...]:
@@ -202,10 +236,13 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block"))
     p.add_argument("--num-objects", type=int, default=3)
     p.add_argument("--graph", default="full")
     p.add_argument("--distractors", default="5,5")
-    p.add_argument("--task", default="match", help="match (every object) or match-first (object 0 only)")
+    p.add_argument("--task", default="match", help="chemical-distractors: match (every object) or match-first "
+                                                    "(object 0 only); block: pick or stack")
+    p.add_argument("--episode-length", type=int, default=0, help="steps per episode (0: the env's default)")
     p.add_argument("--steps", type=int, default=20_000, help="random-policy transitions per seed")
     p.add_argument("--updates", type=int, default=5_000)
     p.add_argument("--estimate-every", type=int, default=500,
@@ -220,10 +257,14 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
-    env_kwargs = dict(graph=args.graph, num_objects=args.num_objects, distractors=args.distractors, task=args.task)
+    env_kwargs: dict[str, Any] = dict(distractors=args.distractors, task=args.task)
+    if args.env == "chemical-distractors":
+        env_kwargs |= dict(graph=args.graph, num_objects=args.num_objects)
+    if args.episode_length:
+        env_kwargs["episode_length"] = args.episode_length
     rows: list[dict[str, Any]] = []
     for seed in args.seeds:
-        spec, data = collect(env_kwargs, args.steps, seed)
+        spec, data = collect(env_kwargs, args.steps, seed, args.env)
         results = {}
         for variant in args.variants:
             cfg = CBMConfig(dynamics=variant, lr=args.lr)
@@ -236,9 +277,9 @@ def main(argv: list[str] | None = None) -> None:
             (args.out / "cbm_table.json").write_text(json.dumps({"args": vars(args) | {"out": str(args.out)},
                                                                   "factor_names": spec.factor_names,
                                                                   "rows": rows}, indent=1))
+        scene = f"{args.num_objects} objects, " if args.env == "chemical-distractors" else ""
         plot_abstractions(spec, results, args.out / f"cbm_abstractions_s{seed}.png",
-                          f"chemical-distractors {args.task}, {args.num_objects} objects, distractors {args.distractors}, "
-                          f"seed {seed}")
+                          f"{args.env} {args.task}, {scene}distractors {args.distractors}, seed {seed}")
     print(table(rows))
 
 
