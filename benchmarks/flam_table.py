@@ -175,6 +175,24 @@ def evaluate(model: nn.Module, autoencoder: FSQAutoencoder, features: torch.Tens
     return results
 
 
+def matched_dci(model: FLAM, features: torch.Tensor, actions: torch.Tensor, positions: torch.Tensor,
+                slots: torch.Tensor, grid_size: int) -> dict[str, float]:
+    """A diagnostic, not the chapter's metric: DCI with factor ``i`` = the slot holding agent ``i`` in
+    each frame (``slots`` int ``[E, T+1, N]`` from :func:`agent_slots`, i.e. from the true masks):
+    what D, C and I would be if every agent kept one slot across videos. Latent actions against the
+    actions (``dci_*_matched``), slots' states against the positions (``dci_*_positions_matched``)."""
+    with torch.no_grad():
+        states = model.factorizer(features)[0]
+        codes = model.infer(features)
+    return {**dci_keys(dci(per_agent(codes, slots[:, :-1]), actions.flatten(0, 1), classes=5), "_matched"),
+            **dci_keys(position_dci(per_agent(states, slots), positions.flatten(0, 1), grid_size), "_positions_matched")}
+
+
+def per_agent(values: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+    """``[E * T, N, d]``: per frame, agent ``i``'s slot's values (``values [E, T, K, d]``, ``slots`` int ``[E, T, N]``)."""
+    return values.gather(2, slots[..., None].expand(-1, -1, -1, values.shape[-1])).flatten(0, 1)
+
+
 def random_codes(actions: torch.Tensor, positions: torch.Tensor, config: FLAMConfig, grid_size: int,
                  seed: int) -> dict[str, float]:
     """Table 8.2's Random row: Gaussian codes shaped as FLAM's latent actions (against the actions)
@@ -261,7 +279,8 @@ def main(args: Args) -> dict[str, dict[str, float]]:
             with torch.no_grad():
                 attention = model.factorizer(test_features)[1]
             slots = agent_slots(attention, torch.from_numpy(test["labels"]), env.num_agents)
-            results[name].update({**slot_sharing(slots), "agent_slot_share": agent_slot_share(slots, config.num_slots)})
+            results[name].update({**slot_sharing(slots), "agent_slot_share": agent_slot_share(slots, config.num_slots),
+                                  **matched_dci(model, test_features, actions, positions, slots, env.grid_size)})
         print(f"{name}: {json.dumps(results[name])}", flush=True)
     results["random"] = random_codes(actions, positions, config, env.grid_size, args.seed)
     print_table(results, args)

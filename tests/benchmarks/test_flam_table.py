@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmarks.flam_table import agent_slot_share, agent_slots, main, parse_args, slot_sharing, train_lam, train_two_stage
+from benchmarks.flam_table import agent_slot_share, agent_slots, per_agent, main, parse_args, slot_sharing, train_lam, train_two_stage
 from causal.flam import FLAM, FLAMConfig
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -29,6 +29,7 @@ def test_flam_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert all(0.0 <= results[key][f"dci_{x}_positions"] <= 1.0 for key in ("flam", "random") for x in "dci")
     assert "dci_d_positions" not in results["monolithic"] and "psnr" not in results["random"]
     assert len(results["flam"]["positions_importance"]) == 4 and len(results["flam"]["agent_slot_share"][0]) == 5
+    assert all(0.0 <= results["flam"][f"dci_{x}{s}_matched"] <= 1.0 for x in "dci" for s in ("", "_positions"))
     assert 0.0 <= results["flam"]["every_agent_own_slot"] <= 1.0
     assert "| flam |" in capsys.readouterr().out
 
@@ -68,3 +69,9 @@ def test_the_two_stage_baseline_trains_slots_first_then_latent_actions_on_them_f
     assert set(results) == {"recon", "two-stage", "random"} and results["two-stage"]["psnr"] > 0
     assert 0.0 <= results["two-stage"]["dci_d_positions"] <= 1.0
     assert 0.0 <= results["two-stage"]["every_agent_own_slot"] <= 1.0
+
+
+def test_per_agent_picks_each_agents_slot_per_frame() -> None:
+    values = torch.arange(2 * 3 * 2, dtype=torch.float32).view(1, 2, 3, 2)  # frame t, slot k: [6t + 2k, 6t + 2k + 1]
+    slots = torch.tensor([[[2, 0], [1, 1]]])  # frame 0: agents in slots 2 and 0; frame 1: both in slot 1
+    assert per_agent(values, slots).tolist() == [[[4.0, 5.0], [0.0, 1.0]], [[8.0, 9.0], [8.0, 9.0]]]
