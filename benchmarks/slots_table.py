@@ -1,6 +1,6 @@
 """Table 7.1 analogue (chapter 7, Dyn-O): FG-ARI of slot masks against the renderer's exact masks.
 
-For each seed: frames of ``chemical-pixels`` (states drawn as ``reset`` draws them) train the frame
+For each seed: frames of ``--env`` train the frame
 autoencoder (Enc/Dec of eq. 7.1, then frozen and shared by the three variants, as the Cosmos
 tokenizer is in the chapter), then slot attention and the slot decoder are trained on eq. 7.1 three
 times, with the same initial weights and batches:
@@ -16,10 +16,17 @@ object; the slot identity (the share of foreground pixels in the slot the prior 
 to) says whether slot ``1 + j`` is object ``j`` in every frame, which a slot-wise causal model needs. Budgets are update counts, so a loaded
 machine gives the same numbers, only later; one torch thread.
 
-    python -m benchmarks.slots_table [--seeds 0 1 2] [--slot-updates 1500] [--out benchmark-results/slots/table.json]
+``--env chemical-pixels`` (default): states drawn as ``reset`` draws them (a fresh layout each), with
+``--num-objects`` objects. ``--env sprites``: the bigfish-like sprite game (``envs.sprites``), frames
+of uniformly random play (:func:`envs.sprites.record_frames`), ``--num-objects`` objects = the agent
+and ``num_objects - 1`` fish; overlapping multi-coloured sprites on a textured background, the
+harder scene the Chemical rows lack.
+
+    python -m benchmarks.slots_table [--env sprites] [--seeds 0 1 2] [--slot-updates 1500] [--out benchmark-results/slots/table.json]
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import sys
 import time
@@ -33,8 +40,11 @@ from benchmarks.seeded_table import table_main
 from causal.fg_ari import fg_ari
 from causal.slots import SlotConfig, SlotModel, SlotTrainer, fit_autoencoder, token_masks
 from envs.chemical_pixels import ChemicalPixelsEnv
+from envs.sprites import SpritesEnv, record_frames
 
 VARIANTS = ("annealed", "none", "always")
+ENVS = ("chemical-pixels", "sprites")
+"""The rendered environments ``--env`` takes."""
 EVAL_SEED_OFFSET = 10_000
 """Evaluation frames come from env seed ``seed + EVAL_SEED_OFFSET``: unseen in training."""
 
@@ -57,6 +67,23 @@ def frames_of(env: ChemicalPixelsEnv, seed: int, count: int) -> tuple[torch.Tens
     env.reset(seed=seed)
     frames, labels = env.render_states(env.sample_states(count))
     return torch.from_numpy(frames), torch.from_numpy(labels.astype(np.int64))
+
+
+def frame_source(env_name: str, budget: Budget) -> Callable[[int, int], tuple[torch.Tensor, torch.Tensor]]:
+    """``(seed, count) -> (frames, labels)`` of environment ``env_name`` at ``budget``'s sizes."""
+    if env_name == "chemical-pixels":
+        env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
+        return lambda seed, count: frames_of(env, seed, count)
+    if env_name == "sprites":
+        if budget.num_objects < 2:
+            raise ValueError("sprites needs --num-objects >= 2 (the agent and at least one fish)")
+        sprites = SpritesEnv(num_fish=budget.num_objects - 1, frame_size=budget.frame_size)
+
+        def recorded(seed: int, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+            frames, labels = record_frames(sprites, seed, count)
+            return torch.from_numpy(frames), torch.from_numpy(labels.astype(np.int64))
+        return recorded
+    raise ValueError(f"unknown env {env_name!r}; one of {ENVS}")
 
 
 def score(model: SlotModel, frames: torch.Tensor, labels: torch.Tensor, with_masks: bool) -> tuple[float, float]:
@@ -93,17 +120,18 @@ def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: di
     return model, {"train_seconds": time.perf_counter() - started, "final_losses": losses}
 
 
-def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] = lambda _: None) -> dict[str, Any]:
-    """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames;
-    ``save`` gets the seed's record after each variant."""
+def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] = lambda _: None,
+             env: str = "chemical-pixels") -> dict[str, Any]:
+    """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames of
+    ``env``; ``save`` gets the seed's record after each variant."""
     torch.manual_seed(seed)
-    env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
-    train = frames_of(env, seed, budget.train_frames)
-    test = frames_of(env, seed + EVAL_SEED_OFFSET, budget.eval_frames)
+    source = frame_source(env, budget)
+    train = source(seed, budget.train_frames)
+    test = source(seed + EVAL_SEED_OFFSET, budget.eval_frames)
     base = SlotModel(SlotConfig(num_slots=budget.num_objects + 1), budget.frame_size)
     started = time.perf_counter()
     ae_loss = fit_autoencoder(base.autoencoder, train[0], budget.ae_updates, seed=seed)
-    out: dict[str, Any] = {"seed": seed, "autoencoder": {"final_mse": ae_loss, "seconds": time.perf_counter() - started}}
+    out: dict[str, Any] = {"seed": seed, "env": env, "autoencoder": {"final_mse": ae_loss, "seconds": time.perf_counter() - started}}
     for variant in VARIANTS:
         model, record = train_variant(variant, seed, budget, base.autoencoder.state_dict(), train)
         fg, identity = score(model, *test, with_masks=False)
@@ -132,9 +160,14 @@ def table(results: list[dict[str, Any]]) -> str:
     return "\n".join(rows)
 
 
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", choices=ENVS, default="chemical-pixels", help="the rendered environment")
+
+
 def main(argv: list[str] | None = None) -> None:
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/slots/table.json"),
-               run_seed=lambda seed, budget, _args, save: run_seed(seed, budget, save), table=table)
+               run_seed=lambda seed, budget, args, save: run_seed(seed, budget, save, args.env), table=table,
+               add_arguments=_add_arguments)
 
 
 if __name__ == "__main__":

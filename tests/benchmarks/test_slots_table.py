@@ -20,3 +20,15 @@ def test_slots_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "fg_ari_with_masks" in result["always"] and "fg_ari_with_masks" not in result["none"]
     printed = capsys.readouterr().out
     assert all(f"| {variant} |" in printed for variant in VARIANTS)
+
+
+def test_slots_table_on_the_sprite_game(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "table.json"
+    main(["--env", "sprites", "--seeds", "1", "--num-objects", "3", "--frame-size", "32", "--train-frames", "16",
+          "--eval-frames", "8", "--ae-updates", "1", "--slot-updates", "2", "--out", str(out)])
+    result = json.loads(out.read_text())["results"][0]
+    assert result["env"] == "sprites"
+    for variant in VARIANTS:
+        assert -1.0 <= result[variant]["slots"]["fg_ari"] <= 1.0
+    with pytest.raises(ValueError, match="num-objects"):
+        main(["--env", "sprites", "--num-objects", "1", "--out", str(tmp_path / "bad.json")])
