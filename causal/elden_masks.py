@@ -199,12 +199,7 @@ class MaskTrainer(ELDENTrainer):
             l1 = scores.sum(dim=(2, 3)).mean(dim=1).sum()
             loss = loss + self.mask_cfg.sparsity * l1
             stats["mask_l1"] = float(l1.detach()) / self.cfg.members
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
-        self.optimizer.step()
-        self.updates += 1
-        return stats
+        return self.step(loss, stats)
 
     def state_dict(self) -> dict[str, Any]:
         return {**super().state_dict(), "mask_rng": self.generator.get_state()}

@@ -83,6 +83,10 @@ class ELDENTrainer:
             penalty = self.gradient_penalty(self.model(sub), sub, Targets(*(t[:, :rows] for t in targets)))
             loss = loss + self.cfg.grad_reg * penalty
             stats["grad_penalty"] = float(penalty.detach()) / self.cfg.members
+        return self.step(loss, stats)
+
+    def step(self, loss: torch.Tensor, stats: dict[str, float]) -> dict[str, float]:
+        """One Adam step on ``loss`` (gradient-norm clipped), counted; returns ``stats``."""
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
