@@ -9,9 +9,9 @@ multi-object graph row (an object depending on another object, the interactions 
 share of episodes that induce it at least once, mean and standard deviation over seeds, and the
 mean over those rows. One thread; the budget (env steps, updates, wall seconds) is printed.
 
-    python -m benchmarks.skild_coverage [--env installing-printer] [--env-steps 100000] [--seeds 0 1 2]
+    python -m benchmarks.skild_coverage [--env installing-printer] [--action-mode primitives|grid] [--env-steps 100000] [--seeds 0 1 2]
         [--episodes 500] [--episode-length 0] [--out runs/skild-coverage] [--graphs true|pcmi]
-        [--methods skild diayn random] [--updates-per-step 1] [--eps-decay-steps 40000]
+        [--methods skild diayn random] [--updates-per-step 1] [--eps-decay-steps 40000] [--diversity-weight 0.5]
 
 ``--graphs pcmi`` pre-trains SkiLD on the point-wise CMI graphs of a CDL model trained on the run's
 own transitions instead of the true ones (the output is then ``<env>-pcmi.json``).
@@ -35,14 +35,15 @@ TITLES = {"skild": "SkiLD", "diayn": "DIAYN", "random": "random primitives"}
 
 
 def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed: int, graphs: str,
-             methods: tuple[str, ...], learner: SkillLearnerConfig, updates_per_step: int) -> dict[str, dict]:
+             methods: tuple[str, ...], learner: SkillLearnerConfig, updates_per_step: int,
+             cfg: SkiLDConfig = SkiLDConfig()) -> dict[str, dict]:
     """Coverage per method for one seed: ``{method: {"rows": {(factor, key): share}, "train_cpu_s": ...}}``."""
     out: dict[str, dict] = {}
     run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length, graphs=graphs,
                          updates_per_step=updates_per_step)
     for mode in (m for m in ("skild", "diayn") if m in methods):
         start = time.process_time()
-        agent, _ = pretrain(run, SkiLDConfig(), learner, mode=mode, seed=seed)
+        agent, _ = pretrain(run, cfg, learner, mode=mode, seed=seed)
         trained = time.process_time() - start
         hits: dict[str, int] = {}
         rows = coverage(agent, env, episodes, episode_length, seed=10_000 + seed, skill_steps=agent.cfg.skill_steps,
@@ -82,14 +83,14 @@ def markdown(lines: list[dict], methods: tuple[str, ...]) -> str:
 
 def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_length: int, out: Path,
          graphs: str = "true", methods: tuple[str, ...] = METHODS, learner: SkillLearnerConfig = SkillLearnerConfig(),
-         updates_per_step: int = 1) -> None:
+         updates_per_step: int = 1, cfg: SkiLDConfig = SkiLDConfig()) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     from envs.registry import make_env
     objects = object_names(make_env(env).env_spec().factor_objects)
     wall = time.time()
     methods = tuple(m for m in METHODS if m in methods)
-    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods, learner, updates_per_step)
+    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods, learner, updates_per_step, cfg)
                for s in seeds]
     lines = table(results, objects, methods)
     text = markdown(lines, methods)
@@ -100,6 +101,7 @@ def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_leng
     (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
                                                  "updates_per_step": updates_per_step,
                                                  "eps_decay_steps": learner.eps_decay_steps,
+                                                 "diversity_weight": cfg.diversity_weight,
                                                  "episodes": episodes, "episode_length": episode_length,
                                                  "wall_s": time.time() - wall, "budget": budget, "table": lines},
                                                 indent=1))
@@ -111,6 +113,9 @@ def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_leng
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="installing-printer")
+    parser.add_argument("--action-mode", choices=("primitives", "grid"), default="primitives",
+                        help="grid: the env's cell-by-cell mode (its registry name <env>-grid: left, right, "
+                             "forward and the object actions in front) instead of goTo primitives")
     parser.add_argument("--env-steps", type=int, default=100_000)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--episodes", type=int, default=500)
@@ -122,6 +127,11 @@ if __name__ == "__main__":
     parser.add_argument("--updates-per-step", type=int, default=1,
                         help="skill-policy updates per batched env step (16 transitions)")
     parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
+    parser.add_argument("--diversity-weight", type=float, default=SkiLDConfig().diversity_weight,
+                        help="lambda_b of SkiLD's diversity reward (0: Fig. 6.6's 'without diversity')")
     args = parser.parse_args()
+    if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
+        args.env = f"{args.env}-{args.action_mode}"
     main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out, args.graphs,
-         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step)
+         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step,
+         SkiLDConfig(diversity_weight=args.diversity_weight))

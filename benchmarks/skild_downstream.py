@@ -7,9 +7,9 @@ task steps. Reported: the success rate of the episodes finished in each PPO upda
 standard deviation over seeds at a few points of training, and the final success (mean over the
 last quarter of updates). One thread; budgets (env steps, CPU seconds) are printed.
 
-    python -m benchmarks.skild_downstream [--env installing-printer] [--task ""] [--pretrain-steps 30000]
+    python -m benchmarks.skild_downstream [--env installing-printer] [--action-mode primitives|grid] [--task ""] [--pretrain-steps 30000]
         [--task-steps 30000] [--seeds 0 1 2] [--episode-length 0] [--out runs/skild-downstream]
-        [--end-on-target] [--updates-per-step 1] [--eps-decay-steps 40000]
+        [--end-on-target] [--updates-per-step 1] [--eps-decay-steps 40000] [--diversity-weight 0.5]
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ TITLES = {"skild": "SkiLD skills", "diayn": "DIAYN skills", "ppo": "PPO from scr
 
 def one_seed(env: str, task: str, pretrain_steps: int, task_steps: int, episode_length: int, seed: int,
              end_on_target: bool = False, learner: SkillLearnerConfig = SkillLearnerConfig(),
-             updates_per_step: int = 1) -> dict:
+             updates_per_step: int = 1, cfg: SkiLDConfig = SkiLDConfig()) -> dict:
     """Success curves per method for one seed, and the CPU seconds spent."""
     out: dict = {}
     tasks = TaskConfig(env_steps=task_steps, end_on_target=end_on_target)
@@ -42,7 +42,7 @@ def one_seed(env: str, task: str, pretrain_steps: int, task_steps: int, episode_
         if mode != "ppo":
             run = PretrainConfig(env=env, env_steps=pretrain_steps, episode_length=episode_length,
                                  updates_per_step=updates_per_step)
-            agent, _ = pretrain(run, SkiLDConfig(), learner, mode=mode, seed=seed)
+            agent, _ = pretrain(run, cfg, learner, mode=mode, seed=seed)
         curve = train_task(agent, env, task, tasks, seed=seed, episode_length=episode_length)
         out[mode] = {"curve": curve, "cpu_s": time.process_time() - start}
         print(f"seed {seed} {mode}: final {final(curve):.2f}, {out[mode]['cpu_s']:.0f} CPU s", flush=True)
@@ -76,12 +76,12 @@ def markdown(results: list[dict], task_steps: int) -> str:
 
 def main(env: str, task: str, pretrain_steps: int, task_steps: int, seeds: list[int], episode_length: int,
          out: Path, end_on_target: bool = False, learner: SkillLearnerConfig = SkillLearnerConfig(),
-         updates_per_step: int = 1) -> None:
+         updates_per_step: int = 1, cfg: SkiLDConfig = SkiLDConfig()) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     wall = time.time()
     results = [one_seed(env, task, pretrain_steps, task_steps, episode_length, s, end_on_target, learner,
-                        updates_per_step) for s in seeds]
+                        updates_per_step, cfg) for s in seeds]
     text = markdown(results, task_steps)
     name = (f"{env}-{task}" if task else env) + ("-end-on-target" if end_on_target else "")
     (out / f"{name}.json").write_text(json.dumps({"env": env, "task": task, "pretrain_steps": pretrain_steps,
@@ -89,6 +89,7 @@ def main(env: str, task: str, pretrain_steps: int, task_steps: int, seeds: list[
                                                   "episode_length": episode_length,
                                                   "end_on_target": end_on_target,
                                                   "updates_per_step": updates_per_step,
+                                                  "diversity_weight": cfg.diversity_weight,
                                                   "eps_decay_steps": learner.eps_decay_steps, "wall_s": time.time() - wall,
                                                   "results": results}, indent=1))
     (out / f"{name}.md").write_text(text)
@@ -100,6 +101,9 @@ def main(env: str, task: str, pretrain_steps: int, task_steps: int, seeds: list[
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="installing-printer")
+    parser.add_argument("--action-mode", choices=("primitives", "grid"), default="primitives",
+                        help="grid: the env's cell-by-cell mode (its registry name <env>-grid: left, right, "
+                             "forward and the object actions in front) instead of goTo primitives")
     parser.add_argument("--task", default="")
     parser.add_argument("--pretrain-steps", type=int, default=30_000)
     parser.add_argument("--task-steps", type=int, default=30_000)
@@ -111,6 +115,11 @@ if __name__ == "__main__":
     parser.add_argument("--updates-per-step", type=int, default=1,
                         help="skill-policy updates per batched env step of pre-training (16 transitions)")
     parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
+    parser.add_argument("--diversity-weight", type=float, default=SkiLDConfig().diversity_weight,
+                        help="lambda_b of SkiLD's diversity reward (0: Fig. 6.6's 'without diversity')")
     args = parser.parse_args()
+    if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
+        args.env = f"{args.env}-{args.action_mode}"
     main(args.env, args.task, args.pretrain_steps, args.task_steps, args.seeds, args.episode_length, args.out,
-         args.end_on_target, SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step)
+         args.end_on_target, SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step,
+         SkiLDConfig(diversity_weight=args.diversity_weight))

@@ -88,6 +88,8 @@ class EnvEntry:
     """Post-run evaluation suite that applies (``chemical``: chapter 3's k-step prediction and Match)."""
     check: Callable[[EnvOptions], None] | None = None
     """Validates the run options this env takes (``ValueError`` with a message), before anything starts."""
+    preset: Mapping[str, Any] = field(default_factory=dict)
+    """Constructor keywords this entry always passes (``installing-printer-grid``: ``action_mode="grid"``)."""
 
     @property
     def has_global_truth(self) -> bool:
@@ -109,7 +111,7 @@ class EnvEntry:
         return _load(self.entry_point)
 
     def make(self, **kwargs: Any) -> gym.Env:
-        return self.env_class()(**kwargs)
+        return self.env_class()(**{**self.preset, **kwargs})
 
     def skill_runner(self) -> type | None:
         return _load(self.skills) if self.skills else None
@@ -181,6 +183,18 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              "Mini-BEHAVIOR Cleaning Car (ch. 6; CarWash of ch. 5): soak the rag, clean the car, clean the rag",
              options=_GRID, tasks=dict.fromkeys(_CLEANING, "cleaning-car"), task_kwarg="task",
              check=_check_by_building("cleaning-car"), **_HOUSEHOLD),
+    *(EnvEntry(f"{name}-grid", gym_id.replace("-v0", "Grid-v0"), point,
+               f"{title}; Mini-BEHAVIOR's cell-by-cell actions (left, right, forward, object actions in front) "
+               "instead of goTo primitives", options=_GRID, constant_factors=constant,
+               tasks=dict.fromkeys(tasks, f"{name}-grid"), task_kwarg="task" if tasks else "",
+               check=_check_by_building(f"{name}-grid"), preset={"action_mode": "grid"}, **_HOUSEHOLD)
+      for name, gym_id, point, title, constant, tasks in (
+          ("installing-printer", "causeway/InstallingPrinter-v0", "envs.household.printer:InstallingPrinterEnv",
+           "Mini-BEHAVIOR Installing Printer (ch. 6)", ("table.clean",), ()),
+          ("thawing", "causeway/Thawing-v0", "envs.household.thawing:ThawingEnv", "Mini-BEHAVIOR Thawing (ch. 5-6)",
+           (), _THAWING),
+          ("cleaning-car", "causeway/CleaningCar-v0", "envs.household.cleaning_car:CleaningCarEnv",
+           "Mini-BEHAVIOR Cleaning Car (ch. 6)", (), _CLEANING))),
     EnvEntry("minecraft2d", "causeway/Minecraft2D-v0", "envs.minecraft2d:Minecraft2DEnv",
              "2D Minecraft (ch. 5, after Andreas et al. 2017): gather and craft up a technology tree",
              options=_GRID, tasks=dict.fromkeys(_MINECRAFT, "minecraft2d"), task_kwarg="goal",
@@ -227,7 +241,7 @@ def check_options(name: str, options: EnvOptions) -> None:
 def _register_with_gymnasium() -> None:
     for entry in ENVS.values():
         if entry.gym_id not in gym.registry:
-            gym.register(id=entry.gym_id, entry_point=entry.entry_point)
+            gym.register(id=entry.gym_id, entry_point=entry.entry_point, kwargs=dict(entry.preset))
 
 
 _register_with_gymnasium()

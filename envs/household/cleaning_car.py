@@ -55,7 +55,7 @@ class CleaningCarEnv(GridTaskEnv):
     env_id = "cleaning-car"
 
     def __init__(self, *, task: str = "clean-rag", room_size: int = 10, episode_length: int = 100,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, action_mode: str = "primitives") -> None:
         check_choice("task", task, TASKS)
         check_room_size(room_size, MIN_ROOM_SIZE)
         self.task = task
@@ -66,7 +66,8 @@ class CleaningCarEnv(GridTaskEnv):
             toggle(layout, "sink"),
         )
         stages = _stages(layout)[: STAGES_PER_TASK[task]]
-        super().__init__(layout, actions, _updates(layout), stages, self._lay_out_room, episode_length, render_mode)
+        super().__init__(layout, actions, _updates(layout), stages, self._lay_out_room, episode_length, render_mode,
+                         action_mode)
 
     def _lay_out_room(self, rng: np.random.Generator) -> list[int]:
         lay = self.layout
@@ -81,7 +82,8 @@ class CleaningCarEnv(GridTaskEnv):
         return state
 
     def config(self) -> dict[str, Any]:
-        return {"task": self.task, "room_size": self.layout.room_size, "episode_length": self.episode_length}
+        return {"task": self.task, "room_size": self.layout.room_size, "episode_length": self.episode_length,
+                **self._mode_config()}
 
 
 def _lying_in(x: int, y: int, held: int, spec: ObjectSpec, ox: int, oy: int) -> bool:

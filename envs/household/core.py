@@ -23,7 +23,7 @@ import gymnasium as gym
 import numpy as np
 
 from envs.household.grid import DX, DY, Layout, check_episode_length
-from envs.household.primitives import Action
+from envs.household.primitives import Action, grid_actions
 from envs.household.rules import Rule, RuleEngine
 from proto.messages import EnvSpec
 
@@ -49,7 +49,10 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
     """A task in a grid room, with factored categorical observations and true local graphs.
 
     Observation: float32 ``[d_S]`` in the order of :attr:`factor_names`, every factor a category
-    index. Action: ``Discrete(len(action_names))``, one primitive on one object each.
+    index. Action: ``Discrete(len(action_names))``, one primitive on one object each; with
+    ``action_mode="grid"`` the ``goTo`` primitives give way to Mini-BEHAVIOR's ``left``, ``right``
+    and ``forward`` (:func:`envs.household.primitives.grid_actions`; the factors are the same).
+    ``env_id`` is then ``<task env>-grid``, the registry's name of that mode.
     ``info["local_graph"]``: uint8 ``[d_S, d_S + 1]`` (rows: factors at ``t + 1``; columns: factors
     at ``t``, then the action), see :mod:`envs.household.rules`; ``info["stages"]``: names of the
     stages reached so far this episode, in stage order; ``info["num_stages"]``: how many;
@@ -61,8 +64,13 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
 
     def __init__(self, layout: Layout, actions: Sequence[Action], updates: Sequence[Rule], stages: Sequence[Stage],
                  lay_out: Callable[[np.random.Generator], list[int]], episode_length: int,
-                 render_mode: str | None) -> None:
+                 render_mode: str | None, action_mode: str = "primitives") -> None:
         check_episode_length(episode_length)
+        actions = grid_actions(layout, actions, action_mode)
+        self.action_mode = action_mode
+        if action_mode != "primitives":
+            self.env_id = f"{type(self).env_id}-{action_mode}"
+
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.layout, self.actions, self.stages = layout, tuple(actions), tuple(stages)
@@ -85,7 +93,11 @@ class GridTaskEnv(gym.Env[np.ndarray, np.int64]):
 
     def config(self) -> dict[str, Any]:
         """The constructor arguments (JSON-ready)."""
-        return {"room_size": self.layout.room_size, "episode_length": self.episode_length}
+        return {"room_size": self.layout.room_size, "episode_length": self.episode_length, **self._mode_config()}
+
+    def _mode_config(self) -> dict[str, Any]:
+        """``action_mode`` for the config, where the env takes it and it is not the default."""
+        return {"action_mode": self.action_mode} if self.action_mode != "primitives" else {}
 
     def constant_factors(self) -> tuple[str, ...]:
         """Factors with the same value in every episode (their edges are true but unlearnable here)."""

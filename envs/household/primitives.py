@@ -141,3 +141,59 @@ def set_open(layout: Layout, obj: str, value: int) -> Action:
     ax, ay, ad = _agent(layout)
     return Action("open" if value else "close", obj, (Rule(state, (state, ax, ay, ad, ox, oy), lambda v, x, y, d, px, py: (
         value if faces(x, y, d, px, py, w, h) else v)),))
+
+
+ACTION_MODES = ("primitives", "grid")
+"""How the agent acts: ``primitives`` (the default: ``goTo(o)`` teleports next to ``o``) or ``grid``
+(Mini-BEHAVIOR's own actions: turn left, turn right, move forward one cell, and the object actions
+on the cell in front), see :func:`grid_actions`."""
+
+
+def turn(layout: Layout, step: int) -> Action:
+    """``left`` (``step`` -1, counter-clockwise as MiniGrid) or ``right`` (+1): the agent turns in place."""
+    ad = layout["agent.dir"]
+    return Action("left" if step < 0 else "right", "agent", (Rule(ad, (ad,), lambda d: (d + step) % 4),))
+
+
+def forward(layout: Layout) -> Action:
+    """``forward``: the agent moves one cell the way it faces, unless that cell is wall or a cell of a
+    piece of furniture (a located object that is not an item). Items do not block (they lie on the
+    floor and the agent may stand on them, as on MiniGrid's overlappable objects)."""
+    ax, ay, ad = _agent(layout)
+    furniture = [o for o, spec in layout.objects.items() if o != "agent" and spec.located and not spec.movable]
+    corners = tuple(layout[f"{o}.{a}"] for o in furniture for a in ("x", "y"))
+    sizes = tuple((layout.objects[o].width, layout.objects[o].height) for o in furniture)
+    last = layout.room_size - 2
+
+    def target(x: int, y: int, d: int, cs: Sequence[int]) -> tuple[int, int]:
+        fx, fy = x + DX[d], y + DY[d]
+        if not (1 <= fx <= last and 1 <= fy <= last):
+            return x, y
+        if any(inside(fx, fy, cs[2 * k], cs[2 * k + 1], w, h) for k, (w, h) in enumerate(sizes)):
+            return x, y
+        return fx, fy
+
+    return Action("forward", "agent", (
+        Rule(ax, (ax, ay, ad, *corners), lambda x, y, d, *cs: target(x, y, d, cs)[0]),
+        Rule(ay, (ay, ax, ad, *corners), lambda y, x, d, *cs: target(x, y, d, cs)[1]),
+    ))
+
+
+def grid_actions(layout: Layout, actions: Sequence[Action], mode: str) -> tuple[Action, ...]:
+    """The actions of ``mode``: ``primitives`` leaves ``actions`` as they are; ``grid`` replaces every
+    ``goTo`` by ``left``, ``right`` and ``forward`` (first, in that order) and keeps the object
+    actions (``pick``, ``place``, ``toggle``, ``open``, ``close``), which already act only on the
+    object in the cell the agent faces.
+
+    Deviation from Mini-BEHAVIOR: its ``pickup``/``drop``/``toggle`` take whatever object is in front
+    (one action per object slot of the cell); here each object action still names its object
+    (``pick(printer)``), so the action set stays the env's own and the object's factors keep their
+    edges as in primitive mode. While no two items share the cell in front the two coincide up to
+    the labelling of the actions.
+    """
+    if mode not in ACTION_MODES:
+        raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {mode!r}")
+    if mode == "primitives":
+        return tuple(actions)
+    return (turn(layout, -1), turn(layout, 1), forward(layout),
+            *(a for a in actions if a.primitive != "goTo"))

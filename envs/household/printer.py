@@ -37,13 +37,14 @@ class InstallingPrinterEnv(GridTaskEnv):
 
     env_id = "installing-printer"
 
-    def __init__(self, *, room_size: int = 8, episode_length: int = 150, render_mode: str | None = None) -> None:
+    def __init__(self, *, room_size: int = 8, episode_length: int = 150, render_mode: str | None = None,
+                 action_mode: str = "primitives") -> None:
         check_room_size(room_size, MIN_ROOM_SIZE)
         layout = Layout(int(room_size), (TABLE, PRINTER))
         actions = (go_to(layout, "table"), go_to(layout, "printer"), pick(layout, "printer"),
                    place(layout, "printer"), toggle(layout, "printer"))
         super().__init__(layout, actions, _updates(layout), _stages(layout), self._lay_out_room,
-                         episode_length, render_mode)
+                         episode_length, render_mode, action_mode)
 
     def constant_factors(self) -> tuple[str, ...]:
         return ("table.clean",)

@@ -46,7 +46,7 @@ class ThawingEnv(GridTaskEnv):
     env_id = "thawing"
 
     def __init__(self, *, task: str = "thaw-fish", room_size: int = 10, episode_length: int = 300,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, action_mode: str = "primitives") -> None:
         check_choice("task", task, TASKS)
         check_room_size(room_size, MIN_ROOM_SIZE)
         self.task = task
@@ -61,7 +61,7 @@ class ThawingEnv(GridTaskEnv):
         )
         updates = tuple(_thaw(layout, f) for f in FOODS)
         super().__init__(layout, actions, updates, _stages(layout, self.targets), self._lay_out_room,
-                         episode_length, render_mode)
+                         episode_length, render_mode, action_mode)
 
     def _lay_out_room(self, rng: np.random.Generator) -> list[int]:
         lay = self.layout
@@ -79,7 +79,8 @@ class ThawingEnv(GridTaskEnv):
         return state
 
     def config(self) -> dict[str, Any]:
-        return {"task": self.task, "room_size": self.layout.room_size, "episode_length": self.episode_length}
+        return {"task": self.task, "room_size": self.layout.room_size, "episode_length": self.episode_length,
+                **self._mode_config()}
 
 
 def _thaw(lay: Layout, food: str) -> Rule:
