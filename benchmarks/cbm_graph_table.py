@@ -23,8 +23,16 @@ averages: the dynamics graph, the reward's parents (reward CMI >= 0.01) and the 
 Writes ``<out>/cbm_table.json``, a markdown table to stdout and ``<out>/cbm_abstractions_s<seed>.png``
 (which factors each abstraction keeps; Figs. 4.5-4.6).
 
+``--reward-only`` trains the causal reward model alone (it does not need the dynamics) on the same
+data, batches and schedule of estimates, and writes ``<out>/cbm_reward.json`` and a table: the reward
+data (share of non-zero rewards, distinct values), the reward CMI per input averaged over training,
+the reward parents' F1, the abstraction from the learned reward parents through the env's *true*
+dynamics graph, and, from the same trained model, the parents the per-mask-variance CMI
+``0.5 log(MSE_{-i} / MSE)`` used before issue 19 would give (a before/after on identical predictions).
+
     python -m benchmarks.cbm_graph_table --num-objects 3 --distractors 5,5 --updates 5000 --seeds 0 1 2
     python -m benchmarks.cbm_graph_table --env block --task pick --distractors 20,20 --steps 5000 --updates 1000
+    python -m benchmarks.cbm_graph_table --num-objects 3 --distractors 5,5 --task match-first --reward-only --seeds 0 1 2
 """
 from __future__ import annotations
 
@@ -42,6 +50,7 @@ import torch
 from causal.abstraction import abstraction_accuracy, cdl_abstraction, minimal_abstraction, with_self_edges
 from causal.cbm import CBMTrainer
 from causal.cbm_config import CBMConfig
+from causal.cbm_reward import CausalRewardModel
 from causal.factored import FactorLayout
 from causal.graph_metrics import binary_scores, score_graph, scored_entries
 from envs.distractors import is_distractor
@@ -133,6 +142,100 @@ def train(spec: EnvSpec, cfg: CBMConfig, data: dict[str, np.ndarray], updates: i
             reward_cmi = new_reward if reward_cmi is None else weight * reward_cmi + (1 - weight) * new_reward
             trainer.set_parents(cmi >= cfg.cmi_threshold)
     return Trained(trainer, cmi, reward_cmi, seconds / max(updates, 1))
+
+
+@dataclass
+class TrainedReward:
+    """A reward model trained alone, its reward CMI averaged over training (the model's estimator and the
+    per-mask-variance one used before issue 19, from the same predictions), and every estimate."""
+
+    model: CausalRewardModel
+    reward_cmi: np.ndarray
+    per_mask_cmi: np.ndarray
+    trace: list[dict[str, Any]]
+    seconds_per_update: float
+
+
+def per_mask_variance_cmi(model: CausalRewardModel, state: torch.Tensor, action: torch.Tensor,
+                          reward: torch.Tensor) -> np.ndarray:
+    """The reward CMI with one maximum-likelihood variance per mask, ``0.5 log(MSE_{-i} / MSE)``: the
+    estimator before issue 19, kept here only to compare (constant inputs 0, as the model's)."""
+    with torch.no_grad():
+        mse = model.squared_errors(state, action, reward).double().mean(dim=1)
+    cmi = (0.5 * torch.log(mse[1:] / mse[:1].clamp_min(1e-12))).numpy()
+    cmi[model.cmi(state, action, reward).numpy() == 0] = 0.0  # constant inputs (and a constant reward)
+    return cmi
+
+
+def train_reward(spec: EnvSpec, cfg: CBMConfig, data: dict[str, np.ndarray], updates: int, estimate_every: int,
+                 ema: float, seed: int) -> TrainedReward:
+    """``updates`` Adam steps on the reward model alone (its loss in :meth:`CBMTrainer.update`: squared
+    error under the full and every drop-one mask, the same clip), on the batches :func:`train` draws;
+    the reward CMI on the held-out rows every ``estimate_every`` updates, averaged as there."""
+    torch.manual_seed(seed)
+    layout = FactorLayout.from_spec(spec)
+    model = CausalRewardModel(layout, cfg)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    train_rows, held = np.flatnonzero(~data["heldout"]), tensors(data, np.flatnonzero(data["heldout"]))
+    rng, weight = np.random.default_rng(seed), ema ** estimate_every
+    truth = np.asarray(spec.reward_parents, bool)
+    seconds, cmi, per_mask, trace = 0.0, None, None, []
+    for u in range(1, updates + 1):
+        state, action, _, reward = tensors(data, rng.choice(train_rows, cfg.batch_size))
+        started = time.perf_counter()
+        loss = model.squared_errors(state, action, reward).mean(dim=1).sum()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        optimizer.step()
+        seconds += time.perf_counter() - started
+        if u % estimate_every == 0 or u == updates:
+            new = model.cmi(held[0], held[1], held[3]).numpy()
+            new_per_mask = per_mask_variance_cmi(model, held[0], held[1], held[3])
+            cmi = new if cmi is None else weight * cmi + (1 - weight) * new
+            per_mask = new_per_mask if per_mask is None else weight * per_mask + (1 - weight) * new_per_mask
+            with torch.no_grad():
+                mse = model.squared_errors(held[0], held[1], held[3]).mean(dim=1)
+            trace.append({"update": u, "mse_full": float(mse[0]),
+                          "min_parent_cmi": float(new[truth].min()), "max_other_cmi": float(new[~truth].max()),
+                          "others_over_threshold": int((new[~truth] >= cfg.reward_threshold).sum()),
+                          "per_mask_min_parent_cmi": float(new_per_mask[truth].min()),
+                          "per_mask_max_abs_other_cmi": float(np.abs(new_per_mask[~truth]).max()),
+                          "per_mask_others_over_threshold": int((new_per_mask[~truth] >= cfg.reward_threshold).sum())})
+    return TrainedReward(model, cmi, per_mask, trace, seconds / max(updates, 1))
+
+
+def evaluate_reward(trained: TrainedReward, spec: EnvSpec, data: dict[str, np.ndarray], threshold: float
+                    ) -> dict[str, Any]:
+    """Reward parents from the averaged CMI (the model's and the per-mask one), and the abstractions
+    they give through the env's true dynamics graph, scored against the truth."""
+    n, truth = spec.num_factors, np.asarray(spec.reward_parents)
+    true_kept = set(minimal_abstraction(spec.global_graph, spec.reward_parents).kept)
+    reward = data["reward"]
+    out: dict[str, Any] = {"data": {"nonzero_share": float(np.mean(reward != 0)),
+                                    "distinct_values": int(np.unique(reward).size),
+                                    "variance": float(reward.var()), "heldout": int(data["heldout"].sum())}}
+    for name, cmi in (("reward", trained.reward_cmi), ("per_mask_reward", trained.per_mask_cmi)):
+        parents = (cmi >= threshold).astype(np.uint8)
+        kept = minimal_abstraction(spec.global_graph, parents).kept
+        out[name] = {**binary_scores(parents, truth, np.ones(parents.shape, bool)),
+                     "abstraction_accuracy_true_graph": abstraction_accuracy(kept, true_kept, n),
+                     "learned": parents.tolist(), "cmi": np.round(cmi, 4).tolist()}
+    out["trace"] = trained.trace
+    return out
+
+
+def reward_table(rows: list[dict[str, Any]]) -> str:
+    """Mean and sample sd over seeds, as markdown."""
+    keys = [("data", "nonzero_share"), ("reward", "f1"), ("reward", "abstraction_accuracy_true_graph"),
+            ("per_mask_reward", "f1"), ("per_mask_reward", "abstraction_accuracy_true_graph"),
+            ("", "seconds_per_update")]
+    lines = ["| seeds | " + " | ".join(f"{b}_{k}" if b else k for b, k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+    cells = []
+    for block, key in keys:
+        values = np.array([(r[block] if block else r)[key] for r in rows], dtype=float)
+        cells.append(f"{values.mean():.3f} ± {values.std(ddof=1):.3f}" if len(values) > 1 else f"{values[0]:.3f}")
+    return "\n".join(lines + [f"| {len(rows)} | " + " | ".join(cells) + " |"])
 
 
 def non_distractor_entries(names: tuple[str, ...]) -> np.ndarray:
@@ -253,6 +356,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--variants", nargs="+", default=["implicit", "explicit"])
     p.add_argument("--extra-negatives", type=int, nargs="*", default=[1024],
                    help="also estimate the implicit CMI with these numbers of negatives (sensitivity)")
+    p.add_argument("--reward-only", action="store_true",
+                   help="train and score the causal reward model alone (no dynamics): cbm_reward.json")
     p.add_argument("--out", type=Path, default=Path("benchmark-results/cbm_table"))
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -263,6 +368,20 @@ def main(argv: list[str] | None = None) -> None:
     if args.episode_length:
         env_kwargs["episode_length"] = args.episode_length
     rows: list[dict[str, Any]] = []
+    if args.reward_only:
+        cfg = CBMConfig(lr=args.lr)
+        for seed in args.seeds:
+            spec, data = collect(env_kwargs, args.steps, seed, args.env)
+            trained_reward = train_reward(spec, cfg, data, args.updates, args.estimate_every, args.ema, seed)
+            rows.append({"seed": seed, "seconds_per_update": trained_reward.seconds_per_update,
+                         **evaluate_reward(trained_reward, spec, data, cfg.reward_threshold)})
+            print(f"seed {seed}: {json.dumps({k: rows[-1][k] for k in ('data', 'reward', 'per_mask_reward')})}",
+                  flush=True)
+            (args.out / "cbm_reward.json").write_text(json.dumps({"args": vars(args) | {"out": str(args.out)},
+                                                                   "factor_names": spec.factor_names,
+                                                                   "rows": rows}, indent=1))
+        print(reward_table(rows))
+        return
     for seed in args.seeds:
         spec, data = collect(env_kwargs, args.steps, seed, args.env)
         results = {}
