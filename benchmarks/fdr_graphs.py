@@ -8,8 +8,10 @@ entry's CMI and standard error from the per-sample log-likelihood ratios of ``--
 transitions (:mod:`causal.edge_tests`), and three graphs: edges at CMI >= 0.02 (the chapter's),
 Benjamini-Hochberg at ``--fdr`` on ``CMI > --min-cmi``, Benjamini-Hochberg at ``--fdr`` on ``CMI > null``
 with the bias estimated per entry from the same input permuted across the held-out samples
-(``bias="permuted"``, :mod:`causal.edge_tests`), and the oracle (the best-threshold F1, which needs
-the truth). Also how the recall of the weak true edges (model CMI < 0.02) grows with the held-out
+(``bias="permuted"``, :mod:`causal.edge_tests`), the same against the output's and the graph's
+largest null (``pooled``, ``global``), Benjamini-Hochberg at ``--fdr`` on ``CMI >`` the level cut from
+the run's own CMI table (``bias="split"``: no number set by hand, no null), and the oracle (the
+best-threshold F1, which needs the truth). Also how the recall of the weak true edges (model CMI < 0.02) grows with the held-out
 data the tests see, under both.
 
     python -m benchmarks.fdr_graphs [--graphs collider chain full envs/dags/random10.json random:10:20:1
@@ -31,7 +33,7 @@ import torch
 
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
-from causal.edge_tests import EdgeEstimate, fdr_graph
+from causal.edge_tests import EdgeEstimate, fdr_graph, split_level
 from causal.methods.cdl import permuted_terms
 from causal.factored import FactorLayout
 from causal.generalisation import random_transitions
@@ -43,6 +45,9 @@ HELDOUT_SIZES = (1_000, 4_000, 16_000)
 GOAL_MARGIN = 0.03
 """The issue's goal: the FDR graph's F1 at most this far below the oracle's (and not below the fixed graph's)."""
 MIN_CMI_SWEEP = (0.0, 5e-4, 1e-3, 2e-3, 5e-3)
+LEVEL_GRID = tuple(float(m) for m in np.geomspace(1e-4, 2e-2, 47))
+"""Levels (8 per factor of 10) for the best F1 an FDR test at any fixed ``min_cmi`` reached: a
+diagnostic that needs the truth, telling a wrong level from a test without the power to go lower."""
 """Minimum effect sizes the same estimate is also tested at (how the FDR reached depends on it)."""
 
 
@@ -91,7 +96,8 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
     weak = truth & scored_entries(truth.shape) & (estimate.cmi < 0.02)
 
     def recall_weak(bias: str) -> dict[int, float]:
-        return {n: float((fdr_graph(EdgeEstimate.from_pointwise(gains[:n], permuted[:n]), args.fdr, args.min_cmi, bias)
+        return {n: float((fdr_graph(EdgeEstimate.from_pointwise(gains[:n], permuted[:n]), args.fdr, args.min_cmi, bias,
+                                    cap=0.02)
                           & weak).sum() / max(weak.sum(), 1)) for n in HELDOUT_SIZES}
 
     def false(graph: np.ndarray) -> list[list[float]]:
@@ -99,16 +105,20 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
                  round(float(estimate.null[j, i]), 6), round(float(estimate.excess_stderr[j, i]), 6)]
                 for j, i in zip(*np.nonzero(graph & ~truth & scored_entries(truth.shape)))]
 
+    non_edges = ~truth & scored_entries(truth.shape)
     tested = fdr_graph(estimate, args.fdr, args.min_cmi)
     nulled = fdr_graph(estimate, args.fdr, 0.0, "permuted")
     pooled = fdr_graph(estimate, args.fdr, 0.0, "pooled")
     overall = fdr_graph(estimate, args.fdr, 0.0, "global")
-    non_edges = ~truth & scored_entries(truth.shape)
+    split = fdr_graph(estimate, args.fdr, args.min_cmi, "split", cap=0.02)
+    level = split_level(estimate, args.fdr, cap=0.02)
     return {"graph": graph, "seed": seed, "updates": args.updates,
             "true_edges": int((truth & scored_entries(truth.shape)).sum()),
             "false_discoveries": false(tested), "false_discoveries_permuted": false(nulled),
             "false_discoveries_pooled": false(pooled), "fdr_pooled": scores(pooled, truth),
             "false_discoveries_global": false(overall), "fdr_global": scores(overall, truth),
+            "false_discoveries_split": false(split), "fdr_split": scores(split, truth),
+            "split_level": level, "largest_non_edge_cmi": float(estimate.cmi[non_edges].max()),
             "estimate": {k: [[float(f"{v:.6g}") for v in row] for row in getattr(estimate, k)]
                          for k in ("cmi", "stderr", "null", "excess_stderr")},
             "truth": truth.astype(int).tolist(),
@@ -118,47 +128,95 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
             "weak_recall_by_heldout_permuted": recall_weak("permuted"),
             "weak_recall_by_heldout_pooled": recall_weak("pooled"),
             "weak_recall_by_heldout_global": recall_weak("global"),
+            "weak_recall_by_heldout_split": recall_weak("split"),
             "non_edge_cmi_mean": float(estimate.cmi[non_edges].mean()),
             "non_edge_null_mean": float(estimate.null[non_edges].mean()),
             "by_min_cmi": {str(m): scores(fdr_graph(estimate, args.fdr, m), truth) for m in MIN_CMI_SWEEP}}
 
 
 RULES = (("fixed", "fixed 0.02"), ("fdr_graph", "FDR, min_cmi"), ("fdr_permuted", "FDR, permuted null"),
-         ("fdr_pooled", "FDR, pooled null"), ("fdr_global", "FDR, global null"))
+         ("fdr_pooled", "FDR, pooled null"), ("fdr_global", "FDR, global null"), ("fdr_split", "FDR, split"))
+SUFFIXES = ("", "_permuted", "_pooled", "_global", "_split")
+"""The weak-recall keys of the rules but the fixed 0.02 graph, in ``RULES``' order."""
+
+
+def with_split(row: dict[str, Any], fdr: float, min_cmi: float) -> dict[str, Any]:
+    """A row with the split rule's F1, FDR and level recomputed from the estimate it dumped: rows from
+    before ``bias="split"`` existed, or from an earlier version of it. Where the level differs from
+    the one the run computed, its weak recall by held-out data (which needs the per-sample ratios, not
+    kept) is dropped."""
+    if "estimate" not in row:
+        return row
+    est = EdgeEstimate(*(np.array(row["estimate"][k]) for k in ("cmi", "stderr")), 0)
+    truth = np.array(row["truth"], dtype=bool)
+    level = split_level(est, fdr, cap=0.02)
+    out = {**row, "fdr_split": scores(fdr_graph(est, fdr, min_cmi, "split", cap=0.02), truth), "split_level": level,
+           "largest_non_edge_cmi": float(est.cmi[~truth & scored_entries(truth.shape)].max()),
+           "best_level_f1": max(scores(fdr_graph(est, fdr, m), truth)["f1"] for m in LEVEL_GRID)}
+    before = row.get("split_level", "absent")
+    if before == "absent" or (before is None) != (level is None) or (level is not None and abs(before - level) > 1e-3 * level):
+        out.pop("weak_recall_by_heldout_split", None)
+    return out
 
 
 def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
-    """Mean ± sd over seeds per graph: F1 of each rule and the oracle, the FDR reached by each test."""
+    """Mean ± sd over seeds per graph (and training budget, where a graph has several): F1 of each rule
+    and the oracle, the FDR reached by each test."""
     names = [name.replace("min_cmi", f"min_cmi {min_cmi}") for _, name in RULES]
     lines = ["| graph | seeds | true edges (weak) | " + " | ".join(f"F1 {n}" for n in names) + " | F1 oracle | "
              f"FDR reached at {fdr} ({' / '.join(n.split(', ')[-1] for n in names[1:])}) | weak-edge recall, "
              f"{' / '.join(f'{n // 1000}k' for n in HELDOUT_SIZES)} held-out ({' ; '.join(n.split(', ')[-1] for n in names[1:])}) |",
              "|---|---|---|" + "---|" * (len(RULES) + 3)]
-    lines[0] += f" goal met (FDR within {GOAL_MARGIN} of the oracle, not below fixed 0.02) |"
-    lines[1] += "---|"
-    for graph in dict.fromkeys(r["graph"] for r in rows):
-        mine = [r for r in rows if r["graph"] == graph]
+    lines[0] += (f" goal met (FDR within {GOAL_MARGIN} of the oracle, not below fixed 0.02), min_cmi {min_cmi} |"
+                 " goal met, split |")
+    lines[1] += "---|---|"
+    budgets = {g: {r.get("updates") for r in rows if r["graph"] == g} for g in {r["graph"] for r in rows}}
+    for graph, updates in dict.fromkeys((r["graph"], r.get("updates")) for r in rows):
+        mine = [r for r in rows if (r["graph"], r.get("updates")) == (graph, updates)]
+        label = graph if len(budgets[graph]) == 1 else f"{graph}, {updates} updates"
 
         def ms(values: list[float]) -> str:
             return f"{np.mean(values):.3f} ± {np.std(values, ddof=1) if len(values) > 1 else 0.0:.3f}"
 
         def weak(key: str) -> str:
+            if any(key not in r for r in mine):
+                return "-"
             return " / ".join(f"{np.mean([r[key][str(n)] for r in mine]):.2f}" for n in HELDOUT_SIZES)
 
-        lines.append(f"| {graph} | {len(mine)} | {mine[0]['true_edges']} ({np.mean([r['weak_true_edges'] for r in mine]):.1f}) | "
+        lines.append(f"| {label} | {len(mine)} | {mine[0]['true_edges']} ({np.mean([r['weak_true_edges'] for r in mine]):.1f}) | "
                      + " | ".join(ms([r[key]["f1"] for r in mine]) for key, _ in RULES)
                      + f" | {ms([r['oracle_f1'] for r in mine])} | "
                      + " / ".join(ms([r[key]["fdr"] for r in mine]) for key, _ in RULES[1:]) + " | "
-                     + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in ("", "_permuted", "_pooled", "_global"))
-                     + f" | {sum(map(goal_met, mine))} of {len(mine)} |")
+                     + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in SUFFIXES)
+                     + f" | {sum(map(goal_met, mine))} of {len(mine)} | {sum(goal_met(r, 'fdr_split') for r in mine)} of {len(mine)} |")
     return "\n".join(lines)
 
 
-def goal_met(row: dict[str, Any]) -> bool:
-    """The issue's goal in one run: the FDR graph (at ``--min-cmi``) within ``GOAL_MARGIN`` F1 of the
-    oracle and not below the fixed 0.02 graph (F1 rounded to 3 decimals, as the tables show them)."""
-    tested, fixed, oracle = (round(v, 3) for v in (row["fdr_graph"]["f1"], row["fixed"]["f1"], row["oracle_f1"]))
+def goal_met(row: dict[str, Any], rule: str = "fdr_graph") -> bool:
+    """The issue's goal in one run: the FDR graph (``rule``: at ``--min-cmi`` by default) within
+    ``GOAL_MARGIN`` F1 of the oracle and not below the fixed 0.02 graph (F1 rounded to 3 decimals, as
+    the tables show them)."""
+    tested, fixed, oracle = (round(v, 3) for v in (row[rule]["f1"], row["fixed"]["f1"], row["oracle_f1"]))
     return tested >= round(oracle - GOAL_MARGIN, 3) and tested >= fixed
+
+
+def split_table(rows: list[dict[str, Any]]) -> str:
+    """Per run (rows through :func:`with_split`): the level ``bias="split"`` cut (and the largest
+    non-edge CMI, which it should clear), the F1 of the fixed 0.02 graph, of the FDR graph at
+    ``--min-cmi``, at the split level and at the best of ``LEVEL_GRID``, the oracle's, the FDR the
+    split graph reached, and whether each FDR graph met the issue's goal."""
+    lines = ["| graph | seed | updates | largest non-edge CMI | split level | F1 fixed 0.02 | F1 FDR, min_cmi | "
+             "F1 FDR, split | F1 FDR, best level (needs the truth) | F1 oracle | FDR reached, split | "
+             "goal met, min_cmi / split |", "|---" * 12 + "|"]
+    for r in sorted(rows, key=lambda r: (r["graph"], r.get("updates") or 0, r["seed"])):
+        level = r.get("split_level")
+        lines.append(f"| {r['graph']} | {r['seed']} | {r.get('updates')} | {r['largest_non_edge_cmi']:.2e} | "
+                     f"{'none (min_cmi)' if level is None else f'{level:.2e}'} | {r['fixed']['f1']:.3f} | "
+                     f"{r['fdr_graph']['f1']:.3f} | {r['fdr_split']['f1']:.3f} | "
+                     f"{r['best_level_f1']:.3f} | {r['oracle_f1']:.3f} | "
+                     f"{r['fdr_split']['fdr']:.3f} | {'yes' if goal_met(r) else 'no'} / "
+                     f"{'yes' if goal_met(r, 'fdr_split') else 'no'} |")
+    return "\n".join(lines)
 
 
 REQUESTED = (0.01, 0.05, 0.1, 0.2)
@@ -167,7 +225,7 @@ REQUESTED = (0.01, 0.05, 0.1, 0.2)
 def requested_table(rows: list[dict[str, Any]], min_cmi: float) -> str:
     """The false-discovery proportion reached at several requested rates, per rule, averaged over the
     runs that dumped their estimate (its mean over runs is the false-discovery rate reached)."""
-    rules = (("fixed", min_cmi), ("permuted", 0.0), ("pooled", 0.0), ("global", 0.0))
+    rules = (("fixed", min_cmi), ("permuted", 0.0), ("pooled", 0.0), ("global", 0.0), ("split", min_cmi))
     dumped = [r for r in rows if "estimate" in r]
     lines = [f"| requested FDR | {' | '.join(f'{b} (min_cmi {m})' if b == 'fixed' else b for b, m in rules)} |",
              "|---|" + "---|" * len(rules)]
@@ -178,7 +236,7 @@ def requested_table(rows: list[dict[str, Any]], min_cmi: float) -> str:
             for r in dumped:
                 est = EdgeEstimate(*(np.array(r["estimate"][k]) for k in ("cmi", "stderr")), 0,
                                    *(np.array(r["estimate"][k]) for k in ("null", "excess_stderr")))
-                reached.append(scores(fdr_graph(est, q, level, bias), np.array(r["truth"], dtype=bool))["fdr"])
+                reached.append(scores(fdr_graph(est, q, level, bias, cap=0.02), np.array(r["truth"], dtype=bool))["fdr"])
             cells.append(f"{np.mean(reached):.3f} (max {np.max(reached):.2f})")
         lines.append(f"| {q} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + f"\n\n({len(dumped)} runs)"
@@ -213,8 +271,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="only print the tables of these fdr.json files (or logs of JSON lines) of earlier runs")
     args = p.parse_args(argv)
     if args.table:
-        rows = read_rows(args.table)
-        print(table(rows, args.fdr, args.min_cmi) + "\n\n" + requested_table(rows, args.min_cmi))
+        rows = [with_split(r, args.fdr, args.min_cmi) for r in read_rows(args.table)]
+        print(split_table(rows) + "\n\n" + table(rows, args.fdr, args.min_cmi) + "\n\n" + requested_table(rows, args.min_cmi))
         return
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -224,7 +282,8 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(one(graph, args.objects, seed, args))
             print(json.dumps(rows[-1]), flush=True)
     (args.out / "fdr.json").write_text(json.dumps(rows, indent=1))
-    print(table(json.loads(json.dumps(rows)), args.fdr, args.min_cmi))
+    rows = [with_split(r, args.fdr, args.min_cmi) for r in json.loads(json.dumps(rows))]
+    print(split_table(rows) + "\n\n" + table(rows, args.fdr, args.min_cmi))
 
 
 if __name__ == "__main__":

@@ -63,6 +63,31 @@ It gives up some power (the largest of several noisy nulls sits above the bias).
 size estimated from the data, the largest CMI an input whose dependence was broken reaches in this
 model. It sits where ``min_cmi`` sat and adapts to how well the model is trained (a less-trained
 model's bias is larger, and so is its level), at the cost of the weak edges below it.
+
+**The minimum effect size split from the CMI table itself** (``bias="split"``, ``--evaluator-bias
+split``; no permuted null, so any method whose graph has standard errors can use it). The learned
+model's bias falls as training goes on (docs/results.md), so a hand-set ``min_cmi`` fits one training
+length. Here ``min_cmi`` is re-estimated from every estimate (:func:`split_level`): take the entries
+whose CMI is significantly above 0 (Benjamini-Hochberg at ``fdr`` on ``CMI > 0``: the biased
+non-edges and the edges), sort their log CMI, and find the largest gap between two neighbours that
+both lie between the median of those entries and the method's fixed threshold ``cap`` (0.02 nats: an
+entry above it is an edge under the chapter's rule anyway, so the rule only decides how far below it
+to go). The level is the geometric middle of that gap, if the gap is at least ``SPLIT_MIN_RATIO`` (a
+factor of 2); then the test is ``CMI > level`` as under ``fixed``. Assumed:
+
+* **Two clusters in log CMI.** The non-edges' bias and the weak edges' CMI are separated by a gap
+  of at least a factor of 2, wider than any gap among the weak edges below ``cap``. Where there is
+  no such gap there are no clusters and ``min_cmi`` is used (:func:`split_level` returns None). True
+  edges whose CMI sits inside the bias cluster are given up, as under any ``min_cmi``, and so are
+  weak edges below a wider gap among the edges; a non-edge biased above the gap is taken.
+* **Sparsity**: at least half of the entries significantly above 0 are biased non-edges (in
+  Chemical 2-5% of the tested entries are edges, and a model trained for thousands of updates has
+  tens to a hundred non-edges significantly above 0), so the median lies in the bias cluster and the
+  search starts there. A dense graph, or a model with almost no bias left, breaks it: the search
+  then starts among the edges and the cut can fall between weak and strong edges.
+* The level is only as good as the test that uses it: an edge just above the gap is found only if
+  its CMI is significantly above the level (several standard errors, under Benjamini-Hochberg over
+  hundreds of entries).
 """
 from __future__ import annotations
 
@@ -71,9 +96,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proto.messages import BIASES, EDGE_RULES
+from proto.messages import BIASES, EDGE_RULES, NULL_BIASES
 
-__all__ = ["BIASES", "EDGE_RULES", "EdgeEstimate", "benjamini_hochberg", "decide", "fdr_graph", "p_values", "tested_entries", "undecided"]
+__all__ = ["BIASES", "EDGE_RULES", "NULL_BIASES", "SPLIT_MIN_RATIO", "EdgeEstimate", "benjamini_hochberg", "decide",
+           "effect_level", "fdr_graph", "p_values", "split_level", "tested_entries", "undecided"]
+
+SPLIT_MIN_RATIO = 2.0
+"""``bias="split"``: the smallest ratio of the CMIs either side of the cut that counts as two clusters."""
 
 
 @dataclass(frozen=True)
@@ -153,13 +182,42 @@ def _one_sided(excess: np.ndarray, stderr: np.ndarray) -> np.ndarray:
 
 
 def p_values(estimate: EdgeEstimate, min_cmi: float, bias: str = "fixed") -> np.ndarray:
-    """One-sided p-values per entry of ``CMI > min_cmi`` (``bias="fixed"``) or of ``CMI > null``
-    (``"permuted"``); 0 or 1 where the standard error is 0."""
+    """One-sided p-values per entry of ``CMI > min_cmi`` (``bias`` fixed or split: the caller passes
+    :func:`effect_level`'s level) or of ``CMI > null`` (``"permuted"``, ``"pooled"``, ``"global"``);
+    0 or 1 where the standard error is 0."""
     if bias not in BIASES:
         raise ValueError(f"bias must be one of {BIASES}, got {bias!r}")
-    if bias != "fixed":
+    if bias in NULL_BIASES:
         return _one_sided(*estimate.excess(bias))
     return _one_sided(estimate.cmi - min_cmi, estimate.stderr)
+
+
+def split_level(estimate: EdgeEstimate, fdr: float, cap: float = math.inf) -> float | None:
+    """``bias="split"``'s minimum effect size (module docstring): the geometric middle of the largest
+    gap in log CMI between the median of the entries significantly above 0 and ``cap``; None where
+    there are no two clusters (fewer than 3 such entries, or no gap of ``SPLIT_MIN_RATIO`` there)."""
+    tested = tested_entries(estimate.cmi.shape)
+    cmi = estimate.cmi[tested]
+    positive = benjamini_hochberg(_one_sided(cmi, estimate.stderr[tested]), fdr) & (cmi > 0)
+    x = np.sort(np.log(cmi[positive].astype(np.float64)))
+    if x.size < 3:
+        return None
+    window = x[(x >= np.median(x)) & (x <= math.log(cap))]
+    if window.size < 2:
+        return None
+    gaps = np.diff(window)
+    cut = int(np.argmax(gaps))
+    if gaps[cut] < math.log(SPLIT_MIN_RATIO):
+        return None
+    return float(math.exp((window[cut] + window[cut + 1]) / 2))
+
+
+def effect_level(estimate: EdgeEstimate, fdr: float, min_cmi: float, bias: str = "fixed",
+                 cap: float = math.inf) -> float:
+    """The minimum effect size the fdr rule tests against: :func:`split_level` under ``bias="split"``
+    (``min_cmi`` where it finds no clusters), ``min_cmi`` otherwise."""
+    level = split_level(estimate, fdr, cap) if bias == "split" else None
+    return min_cmi if level is None else level
 
 
 def tested_entries(shape: tuple[int, ...]) -> np.ndarray:
@@ -182,13 +240,15 @@ def benjamini_hochberg(p: np.ndarray, fdr: float) -> np.ndarray:
     return out.reshape(np.shape(p))
 
 
-def fdr_graph(estimate: EdgeEstimate, fdr: float, min_cmi: float, bias: str = "fixed") -> np.ndarray:
+def fdr_graph(estimate: EdgeEstimate, fdr: float, min_cmi: float, bias: str = "fixed",
+              cap: float = math.inf) -> np.ndarray:
     """The edges (bool ``[d_S, d_S + 1]``) whose tests (:func:`p_values`) reject at ``fdr``; the
     self-edges are left out of the tests (kept by Assumption 4, added by the caller). A reward graph
-    (``[d_S + 1]``) has no self-edges: every entry is tested."""
+    (``[d_S + 1]``) has no self-edges: every entry is tested. ``cap``: the split level's cap."""
     tested = tested_entries(estimate.cmi.shape)
     out = np.zeros(estimate.cmi.shape, dtype=bool)
-    out[tested] = benjamini_hochberg(p_values(estimate, min_cmi, bias)[tested], fdr)
+    level = effect_level(estimate, fdr, min_cmi, bias, cap)
+    out[tested] = benjamini_hochberg(p_values(estimate, level, bias)[tested], fdr)
     return out
 
 
@@ -205,13 +265,15 @@ def decide(estimate: EdgeEstimate, rule: str, threshold: float, fdr: float, min_
     ``fixed``: edge if ``cmi >= threshold``; undecided where the interval contains ``threshold``.
     ``fdr``: edge if the test rejects at ``fdr`` (:func:`fdr_graph`; ``bias`` says which test);
     undecided is an entry that is not an edge yet whose interval reaches ``min_cmi`` (of ``cmi``, or
-    of ``cmi`` less the estimated bias otherwise): neither shown to be an edge nor shown to be below
+    of ``cmi`` less the estimated bias under a null; under ``split`` the level it estimated, capped
+    at ``threshold``): neither shown to be an edge nor shown to be below
     the smallest effect that counts. Either way more held-out data decides it."""
     if rule not in EDGE_RULES:
         raise ValueError(f"edge rule must be one of {EDGE_RULES}, got {rule!r}")
     off = tested_entries(estimate.cmi.shape)
     if rule == "fixed":
         return (estimate.cmi >= threshold) & off, undecided(estimate, threshold, z) & off
-    edges = fdr_graph(estimate, fdr, min_cmi, bias)
-    excess, stderr = estimate.excess(bias) if bias != "fixed" else (estimate.cmi, estimate.stderr)
-    return edges, ~edges & (excess + z * stderr >= min_cmi) & off
+    edges = fdr_graph(estimate, fdr, min_cmi, bias, cap=threshold)
+    excess, stderr = estimate.excess(bias) if bias in NULL_BIASES else (estimate.cmi, estimate.stderr)
+    level = effect_level(estimate, fdr, min_cmi, bias, cap=threshold)
+    return edges, ~edges & (excess + z * stderr >= level) & off

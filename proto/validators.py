@@ -10,7 +10,7 @@ from typing import Any, Final
 import numpy as np
 
 from proto.limits import KEY_SEGMENT, MAX_LOCAL_EXAMPLES, MAX_STEPS, ProtocolError, require, short
-from proto.messages import ACTION_KINDS, BIASES, CONTROL_COMMANDS, EDGE_RULES, FACTOR_KINDS, SKILL_PHASES
+from proto.messages import ACTION_KINDS, BIASES, CONTROL_COMMANDS, EDGE_RULES, FACTOR_KINDS, NULL_BIASES, SKILL_PHASES
 from proto.messages import (Control, EnvSpec, FrameBatch, GraphReport, InducedGraphs, LocalGraphReport, ScoredBatch,
                             ServiceStats, SkillBatch, TransitionBatch, Weights)
 
@@ -151,7 +151,7 @@ def _check_edge_tests(m: GraphReport, shape: tuple[int, int]) -> None:
     require(ok, "inconsistent", "GraphReport: edge_rule fdr without cmi_stderr")
     require(0.0 <= m.fdr < 1.0 and m.min_cmi >= 0.0, "bad_field", f"GraphReport: fdr {m.fdr}, min_cmi {m.min_cmi}")
     require(m.bias in BIASES, "bad_field", f"GraphReport.bias: {short(m.bias)}")
-    ok = m.bias == "fixed" or (m.edge_rule == "fdr" and m.cmi_null is not None)
+    ok = m.bias == "fixed" or (m.edge_rule == "fdr" and (m.bias not in NULL_BIASES or m.cmi_null is not None))
     require(ok, "inconsistent", f"GraphReport: bias {m.bias} without the fdr rule and cmi_null")
     if m.cmi_null is not None:
         require(m.cmi_null.shape == shape, "inconsistent", f"GraphReport.cmi_null: {m.cmi_null.shape}, want {shape}")

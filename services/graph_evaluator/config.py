@@ -23,8 +23,10 @@ class GraphEvaluatorConfig(ServiceConfig):
     bias: str = doc("fixed", "how the fdr rule allows for that bias: fixed (test CMI > min_cmi), permuted (test CMI > "
                              "the entry's CMI with its input permuted across the held-out samples, estimated in the "
                              "same pass; exact only for inputs independent of each other), pooled (test CMI > the "
-                             "largest such null of the entry's output) or global (> the largest of the graph); "
-                             "min_cmi then only marks undecided entries (causal.edge_tests)", choices=BIASES)
+                             "largest such null of the entry's output) or global (> the largest of the graph), "
+                             "min_cmi then only marking undecided entries; or split (test CMI > a minimum effect "
+                             "size cut from each estimate's CMI table, the gap between its two clusters of log CMI, "
+                             "min_cmi where it has none; needs no null) (causal.edge_tests)", choices=BIASES)
 
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "
                                 "eval_samples of them, so successive estimates see different episodes")

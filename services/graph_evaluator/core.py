@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from causal.abstraction import with_self_edges
-from causal.edge_tests import EdgeEstimate, decide
+from causal.edge_tests import EdgeEstimate, decide, effect_level
 from causal.factored import FactorLayout
 from causal.graph_metrics import score_graph
 from causal.method import EdgeEstimator, RewardEdgeEstimator, has_standard_errors, import_tensors, task_abstraction
@@ -22,7 +22,7 @@ from causal.replay import ReplayBuffer, heldout_mask
 from envs.registry import ENVS
 from proto.fits import check_fits
 from causal.skild import induced_local_graphs
-from proto.messages import EnvSpec, GraphReport, InducedGraphs, LocalGraphReport, TransitionBatch, Weights
+from proto.messages import NULL_BIASES, EnvSpec, GraphReport, InducedGraphs, LocalGraphReport, TransitionBatch, Weights
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.local import LocalGraphScorer
 from services.graph_evaluator.reward import abstraction_metrics, reward_metrics
@@ -47,8 +47,9 @@ class GraphEvaluatorCore:
         if cfg.edge_rule == "fdr" and not has_standard_errors(self.method):
             raise ValueError(f"edge_rule fdr needs standard errors of the graph's scores; {cfg.method}'s have none")
         if cfg.bias != "fixed" and not has_standard_errors(self.method):
-            raise ValueError(f"bias {cfg.bias} needs the permuted-input null of the graph's scores; {cfg.method}'s has none")
-        self.permute = torch.Generator().manual_seed(cfg.seed + 2) if cfg.bias != "fixed" else None
+            raise ValueError(f"bias {cfg.bias} needs standard errors (and, but for split, the permuted-input null) "
+                             f"of the graph's scores; {cfg.method}'s have none")
+        self.permute = torch.Generator().manual_seed(cfg.seed + 2) if cfg.bias in NULL_BIASES else None
         """Draws the permutation of each estimate's permuted-input null (``bias`` permuted or pooled)."""
         self.kind = self.method.name
         self.device = resolve_device(cfg.device, self.method.devices)
@@ -222,6 +223,12 @@ class GraphEvaluatorCore:
         estimate = EdgeEstimate(cmi, stderr, 0, self.null_ema, self.excess_stderr_ema)
         return decide(estimate, cfg.edge_rule, self.threshold, cfg.fdr, cfg.min_cmi, bias=cfg.bias)
 
+    def tested_level(self, cmi: np.ndarray, stderr: np.ndarray) -> float:
+        """The minimum effect size the fdr rule tested against: ``min_cmi``, or under ``bias`` split the
+        level cut from this estimate (``causal.edge_tests.effect_level``)."""
+        cfg = self.cfg
+        return effect_level(EdgeEstimate(cmi, stderr, 0), cfg.fdr, cfg.min_cmi, cfg.bias, cap=self.threshold)
+
     def decide_reward(self, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The reward's parents ``[d_S + 1]`` under the configured rule (fdr: at the same level and
         ``min_cmi``, against a fixed bias: the reward has no permuted null), and its undecided entries."""
@@ -263,7 +270,7 @@ class GraphEvaluatorCore:
                            true_reward_parents=self.spec.reward_parents if rewards is not None else None,
                            cmi_stderr=stderr, undecided=None if undecided is None else undecided.astype(np.uint8),
                            edge_rule=rule, fdr=self.cfg.fdr if rule == "fdr" else 0.0,
-                           min_cmi=self.cfg.min_cmi if rule == "fdr" else 0.0,
+                           min_cmi=self.tested_level(cmi, stderr) if rule == "fdr" else 0.0,
                            bias=self.cfg.bias if rule == "fdr" else "fixed", cmi_null=self.null_ema,
                            reward_stderr=self.reward_stderr_ema,
                            reward_undecided=None if reward_undecided is None else reward_undecided.astype(np.uint8))

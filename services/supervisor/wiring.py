@@ -18,7 +18,7 @@ from causal.intrinsic import make_reward
 from causal.method import Method, has_standard_errors, permuted_null_refusal
 from causal.methods import get_method
 from envs.registry import EnvEntry, check_options, env_entry, make_env
-from proto.messages import EnvSpec
+from proto.messages import NULL_BIASES, EnvSpec
 from services.bus.credentials import RouterAuth, role_file, write_run_secrets
 from services.bus.roles import access_control, instance_user, new_passwords, run_roles
 from services.bus.router import free_tcp_port
@@ -104,10 +104,13 @@ def _check_edge_tests(cfg: RunConfig, method: Method) -> None:
         what = "--evaluator-edge-rule fdr" if cfg.evaluator.edge_rule == "fdr" else "--stable-reports/--stable-seconds"
         raise ValueError(f"{what} needs a global graph with standard errors (to test edges, to know none is "
                          f"undecided); method {cfg.method!r} has none")
-    if cfg.evaluator.bias != "fixed":
+    if cfg.evaluator.bias in NULL_BIASES:
         refusal = permuted_null_refusal(method, getattr(cfg.models, method.name, None))
         if refusal:
             raise ValueError(f"--evaluator-bias {cfg.evaluator.bias}: {refusal}")
+    elif cfg.evaluator.bias != "fixed" and not has_standard_errors(method):
+        raise ValueError(f"--evaluator-bias {cfg.evaluator.bias} needs a global graph with standard errors; "
+                         f"method {cfg.method!r} has none")
 
 
 def skill_discovery(cfg: RunConfig) -> bool:

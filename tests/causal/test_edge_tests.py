@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from causal.edge_tests import EdgeEstimate, benjamini_hochberg, decide, fdr_graph, p_values, undecided
+from causal.edge_tests import EdgeEstimate, benjamini_hochberg, decide, effect_level, fdr_graph, p_values, split_level, undecided
 
 
 def test_benjamini_hochberg_by_hand() -> None:
@@ -177,3 +177,76 @@ def test_a_small_trained_model_with_the_permuted_null_finds_its_graph() -> None:
     excess, se = est.excess()
     z = excess[~TRUE.astype(bool)] / np.where(se[~TRUE.astype(bool)] > 0, se[~TRUE.astype(bool)], 1)
     assert np.abs(z).max() < 4.0, np.round(z, 2)
+
+
+def two_cluster_table(rng: np.random.Generator, bias_scale: float, edges: np.ndarray,
+                      shape: tuple[int, int] = (15, 16)) -> tuple[EdgeEstimate, np.ndarray]:
+    """A hand-made CMI table like a learned model's: non-edges biased above 0 (log-uniform over two
+    decades up to ``bias_scale``, a third of them at 0), ``edges`` placed at random entries, standard
+    errors a tenth of each entry's CMI (every nonzero entry significantly above 0)."""
+    off = ~np.eye(*shape, dtype=bool)
+    cmi = np.where(off, bias_scale * 10 ** rng.uniform(-2, 0, shape), 0.0)
+    cmi[rng.random(shape) < 1 / 3] = 0.0
+    truth = np.zeros(shape, dtype=bool)
+    rows, cols = np.nonzero(off)
+    pick = rng.choice(rows.size, edges.size, replace=False)
+    truth[rows[pick], cols[pick]] = True
+    cmi[rows[pick], cols[pick]] = edges
+    stderr = np.where(cmi > 0, cmi / 10, 1e-6)
+    return EdgeEstimate(cmi, stderr, 10_000), truth
+
+
+@pytest.mark.parametrize("bias_scale", [2e-3, 5e-4, 1e-4])
+def test_the_split_level_falls_between_two_clusters_and_follows_the_bias(bias_scale: float) -> None:
+    """Weak edges a factor 3-6 above the largest biased non-edge, strong ones far above: the split cuts
+    between the bias and the weak edges, whatever the bias's scale (a fixed min_cmi of 5e-3 misses
+    the weak edges once they are below it), and the split graph is the true one."""
+    rng = np.random.default_rng(11)
+    edges = np.concatenate([bias_scale * np.array([3.0, 4.0, 6.0]), [0.05, 0.3, 0.8, 0.9]])
+    est, truth = two_cluster_table(rng, bias_scale, edges)
+    largest_non_edge = est.cmi[~truth].max()
+    level = split_level(est, 0.05, cap=0.02)                # the cap decide passes: the method's threshold
+    assert level is not None and largest_non_edge < level < edges.min()
+    assert effect_level(est, 0.05, 5e-3, "split", cap=0.02) == level and effect_level(est, 0.05, 5e-3, "fixed") == 5e-3
+    off = ~np.eye(*truth.shape, dtype=bool)
+    assert np.array_equal(fdr_graph(est, 0.05, 5e-3, "split", cap=0.02) & off, truth)
+    assert np.array_equal(decide(est, "fdr", 0.02, 0.05, 5e-3, bias="split")[0], truth)
+    if bias_scale * 6 < 5e-3:
+        assert not np.array_equal(fdr_graph(est, 0.05, 5e-3) & off, truth)
+
+
+def test_no_two_clusters_falls_back_to_min_cmi() -> None:
+    """One cluster (log-uniform CMIs, no gap of a factor 2), too few significant entries, or none:
+    ``split_level`` says there is no split and the rule tests against ``min_cmi``."""
+    rng = np.random.default_rng(12)
+    shape = (15, 16)
+    off = ~np.eye(*shape, dtype=bool)
+    smooth = np.where(off, np.exp(np.sort(rng.uniform(np.log(1e-5), np.log(1e-2), shape), axis=None).reshape(shape)), 0.0)
+    gaps = np.diff(np.log(np.sort(smooth[off])))
+    assert gaps.max() < np.log(2)                               # the table has no gap to cut at
+    one = EdgeEstimate(smooth, smooth / 10, 10_000)
+    assert split_level(one, 0.05) is None and effect_level(one, 0.05, 5e-3, "split") == 5e-3
+    spread = one.cmi.copy()
+    spread[0, 1] = 1.0                                         # one strong edge: a gap, but above the cap only
+    assert split_level(EdgeEstimate(spread, spread / 10, 10_000), 0.05, cap=0.02) is None
+    assert np.array_equal(fdr_graph(one, 0.05, 5e-3, "split"), fdr_graph(one, 0.05, 5e-3))
+    few = np.zeros(shape)
+    few[0, 1], few[2, 3] = 0.5, 1e-4
+    assert split_level(EdgeEstimate(few, np.full(shape, 1e-6), 10_000), 0.05) is None
+    noise = EdgeEstimate(rng.normal(0, 1e-3, shape), np.full(shape, 1e-3), 10_000)   # nothing above 0
+    assert split_level(noise, 0.05) is None
+
+
+def test_the_split_looks_below_the_fixed_threshold_only_and_marks_undecided_by_its_level() -> None:
+    """Only strong edges (0.5-0.8 nats) above a bias cluster: with the cap at the method's 0.02 there is
+    no gap below it, so the rule falls back to ``min_cmi``; without a cap the gap up to the strong edges
+    is found. An entry whose interval reaches the level in use is undecided."""
+    rng = np.random.default_rng(13)
+    est, truth = two_cluster_table(rng, 1e-3, np.array([0.5, 0.6, 0.7, 0.8]))
+    assert split_level(est, 0.05, cap=0.02) is None and 1e-3 < split_level(est, 0.05) < 0.5
+    cmi, stderr = est.cmi.copy(), est.stderr.copy()
+    j, i = np.argwhere(~truth & ~np.eye(*truth.shape, dtype=bool))[0]
+    cmi[j, i], stderr[j, i] = 0.006, 0.002                     # not significantly above 5e-3; reaches it
+    edges, undecided = decide(EdgeEstimate(cmi, stderr, 10_000), "fdr", 0.02, 0.05, 5e-3, bias="split")
+    assert undecided[j, i] and not edges[j, i] and np.array_equal(edges, truth)
+    assert undecided.sum() == 1
