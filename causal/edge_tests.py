@@ -72,11 +72,14 @@ whose CMI is significantly above 0 (Benjamini-Hochberg at ``fdr`` on ``CMI > 0``
 non-edges and the edges), sort their log CMI, and find the largest gap between two neighbours that
 both lie between the median of those entries and the method's fixed threshold ``cap`` (0.02 nats: an
 entry above it is an edge under the chapter's rule anyway, so the rule only decides how far below it
-to go). The level is the geometric middle of that gap, if the gap is at least ``SPLIT_MIN_RATIO`` (a
-factor of 2); then the test is ``CMI > level`` as under ``fixed``. Assumed:
+to go), among the gaps with at least ``SPLIT_MIN_ABOVE`` (2) of those entries above them and below
+``cap`` (one non-edge biased above the rest is not a cluster). The level is the geometric middle of
+that gap, if the gap is at least ``SPLIT_MIN_RATIO`` (a factor of 2); then the test is ``CMI >
+level`` as under ``fixed``. Assumed:
 
-* **Two clusters in log CMI.** The non-edges' bias and the weak edges' CMI are separated by a gap
-  of at least a factor of 2, wider than any gap among the weak edges below ``cap``. Where there is
+* **Two clusters in log CMI.** The non-edges' bias and the weak edges' CMI (at least two of them
+  below ``cap``) are separated by a gap of at least a factor of 2, wider than any gap among the weak
+  edges below ``cap``. Where there is
   no such gap there are no clusters and ``min_cmi`` is used (:func:`split_level` returns None). True
   edges whose CMI sits inside the bias cluster are given up, as under any ``min_cmi``, and so are
   weak edges below a wider gap among the edges; a non-edge biased above the gap is taken.
@@ -98,11 +101,14 @@ import numpy as np
 
 from proto.messages import BIASES, EDGE_RULES, NULL_BIASES
 
-__all__ = ["BIASES", "EDGE_RULES", "NULL_BIASES", "SPLIT_MIN_RATIO", "EdgeEstimate", "benjamini_hochberg", "decide",
+__all__ = ["BIASES", "EDGE_RULES", "NULL_BIASES", "SPLIT_MIN_ABOVE", "SPLIT_MIN_RATIO", "EdgeEstimate", "benjamini_hochberg", "decide",
            "effect_level", "fdr_graph", "p_values", "split_level", "tested_entries", "undecided"]
 
 SPLIT_MIN_RATIO = 2.0
 """``bias="split"``: the smallest ratio of the CMIs either side of the cut that counts as two clusters."""
+SPLIT_MIN_ABOVE = 2
+"""``bias="split"``: the fewest entries between the cut and the cap that count as a cluster (one
+non-edge biased above the rest is not one)."""
 
 
 @dataclass(frozen=True)
@@ -194,8 +200,9 @@ def p_values(estimate: EdgeEstimate, min_cmi: float, bias: str = "fixed") -> np.
 
 def split_level(estimate: EdgeEstimate, fdr: float, cap: float = math.inf) -> float | None:
     """``bias="split"``'s minimum effect size (module docstring): the geometric middle of the largest
-    gap in log CMI between the median of the entries significantly above 0 and ``cap``; None where
-    there are no two clusters (fewer than 3 such entries, or no gap of ``SPLIT_MIN_RATIO`` there)."""
+    gap in log CMI between the median of the entries significantly above 0 and ``cap`` that leaves
+    ``SPLIT_MIN_ABOVE`` of them above it; None where there are no two clusters (fewer than 3 such
+    entries, or no such gap of ``SPLIT_MIN_RATIO``)."""
     tested = tested_entries(estimate.cmi.shape)
     cmi = estimate.cmi[tested]
     positive = benjamini_hochberg(_one_sided(cmi, estimate.stderr[tested]), fdr) & (cmi > 0)
@@ -203,9 +210,10 @@ def split_level(estimate: EdgeEstimate, fdr: float, cap: float = math.inf) -> fl
     if x.size < 3:
         return None
     window = x[(x >= np.median(x)) & (x <= math.log(cap))]
-    if window.size < 2:
+    if window.size < 1 + SPLIT_MIN_ABOVE:
         return None
     gaps = np.diff(window)
+    gaps[window.size - SPLIT_MIN_ABOVE:] = -np.inf   # a cut leaves at least SPLIT_MIN_ABOVE entries above it
     cut = int(np.argmax(gaps))
     if gaps[cut] < math.log(SPLIT_MIN_RATIO):
         return None

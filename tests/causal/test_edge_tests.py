@@ -216,8 +216,9 @@ def test_the_split_level_falls_between_two_clusters_and_follows_the_bias(bias_sc
 
 
 def test_no_two_clusters_falls_back_to_min_cmi() -> None:
-    """One cluster (log-uniform CMIs, no gap of a factor 2), too few significant entries, or none:
-    ``split_level`` says there is no split and the rule tests against ``min_cmi``."""
+    """One cluster (log-uniform CMIs, no gap of a factor 2), a single entry above a gap, too few
+    significant entries, or none: ``split_level`` says there is no split and the rule tests against
+    ``min_cmi``."""
     rng = np.random.default_rng(12)
     shape = (15, 16)
     off = ~np.eye(*shape, dtype=bool)
@@ -229,6 +230,12 @@ def test_no_two_clusters_falls_back_to_min_cmi() -> None:
     spread = one.cmi.copy()
     spread[0, 1] = 1.0                                         # one strong edge: a gap, but above the cap only
     assert split_level(EdgeEstimate(spread, spread / 10, 10_000), 0.05, cap=0.02) is None
+    outlier = one.cmi.copy()
+    outlier[outlier > 3e-3] = 3e-3
+    outlier[0, 1] = 1e-2                                       # one entry 3x above the rest: not a cluster
+    assert split_level(EdgeEstimate(outlier, outlier / 10, 10_000), 0.05, cap=0.02) is None
+    outlier[0, 2] = 1.2e-2                                     # two of them: a cluster
+    assert 3e-3 < split_level(EdgeEstimate(outlier, outlier / 10, 10_000), 0.05, cap=0.02) < 1e-2
     assert np.array_equal(fdr_graph(one, 0.05, 5e-3, "split"), fdr_graph(one, 0.05, 5e-3))
     few = np.zeros(shape)
     few[0, 1], few[2, 3] = 0.5, 1e-4
