@@ -191,8 +191,15 @@ class EnvWorkerCore:
         self.observation, info = self.env.reset(seed=seed)
         self.recorder = FrameRecorder(info, cfg.frame_stride) if cfg.publish_frames else None
         self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
-        self.episode, self.step_in_episode = GENERATION_EPISODES * generation, 0
+        self.first_episode = GENERATION_EPISODES * generation
+        self.episode, self.step_in_episode = self.first_episode, 0
         self.env_steps, self.seq = 0, 0
+
+    @property
+    def episodes_finished(self) -> int:
+        """Episodes this process finished: a count from 0, not the episode id (which a restarted
+        worker's generation offsets by :data:`GENERATION_EPISODES`)."""
+        return self.episode - self.first_episode
 
     @property
     def option_names(self) -> tuple[str, ...]:

@@ -81,13 +81,13 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
                 options.labels(option=option, policy=policy).inc(n)
                 stat = f"options_{policy}_{option}"
                 chosen[stat] = chosen.get(stat, 0) + n
-            shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": batch.policy_version,
+            shell.beat({"env_steps": core.env_steps, "episodes": core.episodes_finished, "policy_version": batch.policy_version,
                         **core.episodes.values(), **chosen})
             if cfg.max_steps and core.env_steps >= cfg.max_steps:
                 break
             _throttle(cfg.max_steps_per_second, core.env_steps, started)
     finally:
-        shell.beat({"env_steps": core.env_steps, "episodes": core.episode, "policy_version": core.policy.version,
+        shell.beat({"env_steps": core.env_steps, "episodes": core.episodes_finished, "policy_version": core.policy.version,
                     **core.episodes.values(), **chosen}, force=True)
         spec_value.close()
         shell.close()

@@ -54,3 +54,16 @@ def test_a_restarted_worker_draws_new_seeds_and_episode_ids(tmp_path) -> None:
     assert np.array_equal(first.state, again.state)
     assert not np.array_equal(first.state, restarted.state)
     assert restarted.episode_id.min() >= GENERATION_EPISODES
+
+
+def test_a_restarted_worker_counts_its_episodes_from_zero() -> None:
+    """The beat's ``episodes`` is a count (the run's total adds a restarted worker's to its
+    predecessor's), not the generation-offset episode id: a resumed run once reported 1,000,033,372."""
+    from services.env_worker.core import GENERATION_EPISODES
+
+    cfg = build_config(EnvWorkerConfig, num_objects=3, batch_steps=64, episode_length=8)
+    for generation in (0, 1):
+        core = EnvWorkerCore(cfg, generation)
+        batch = core.collect()
+        assert core.episode >= GENERATION_EPISODES * generation
+        assert core.episodes_finished == int(np.sum(batch.terminated | batch.truncated)) == 8
