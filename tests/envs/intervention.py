@@ -41,3 +41,28 @@ def edge_names(env: GridTaskEnv, graph: np.ndarray) -> set[str]:
     """``"parent -> child"`` for every non-self edge of ``graph``."""
     columns = (*env.factor_names, "action")
     return {f"{columns[i]} -> {env.factor_names[j]}" for j, i in zip(*np.nonzero(graph)) if i != j}
+
+
+def assert_steps_match_transition(env: GridTaskEnv, rng: np.random.Generator, steps: int = 50) -> None:
+    """``env.step`` gives ``env.transition``'s next state and local graph (uint8) for ``steps`` random actions."""
+    obs, _ = env.reset(seed=0)
+    for a in rng.integers(env.action_space.n, size=steps):
+        expected = env.transition(obs, a)
+        obs, _, terminated, truncated, info = env.step(a)
+        np.testing.assert_array_equal(obs, expected[0])
+        np.testing.assert_array_equal(info["local_graph"], expected[1])
+        assert info["local_graph"].dtype == np.uint8
+        if terminated or truncated:
+            obs, _ = env.reset()
+
+
+def assert_global_graph_is_the_union(env: GridTaskEnv, rng: np.random.Generator, tries: int = 3000) -> None:
+    """The union of the local graphs of every action from random box states is the global graph."""
+    union = np.zeros_like(env.global_graph)
+    for _ in range(tries):
+        state = random_box_state(env, rng)
+        for a in range(env.action_space.n):
+            union |= env.transition(state, a)[1]
+        if np.array_equal(union, env.global_graph):
+            break
+    assert edge_names(env, union ^ env.global_graph) == set()

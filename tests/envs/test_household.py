@@ -21,7 +21,8 @@ from envs.household.scripted import RandomPrimitivePolicy, scripted_policy
 from envs.household.thawing import TASKS as THAW_TASKS
 from proto.codec import decode, encode
 from proto.messages import EnvSpec
-from tests.envs.intervention import edge_names, intervened_graph, random_box_state
+from tests.envs.intervention import (assert_global_graph_is_the_union, assert_steps_match_transition, edge_names,
+                                     intervened_graph, random_box_state)
 
 ENVS = {"installing-printer": InstallingPrinterEnv, "thawing": ThawingEnv, "cleaning-car": CleaningCarEnv}
 CONFIGS = [("installing-printer", {})] + [("thawing", {"task": t}) for t in THAW_TASKS] + [
@@ -347,23 +348,8 @@ def test_every_edge_has_a_change_of_the_parent_that_changes_the_child(name: str)
 @pytest.mark.parametrize("name", ENVS)
 def test_step_gives_the_same_graph_as_transition_and_the_global_graph_is_their_union(name: str) -> None:
     env, rng = _make(name), np.random.default_rng(0)
-    obs, _ = env.reset(seed=0)
-    for a in rng.integers(env.action_space.n, size=50):
-        expected = env.transition(obs, a)
-        obs, _, terminated, truncated, info = env.step(a)
-        np.testing.assert_array_equal(obs, expected[0])
-        np.testing.assert_array_equal(info["local_graph"], expected[1])
-        assert info["local_graph"].dtype == np.uint8
-        if terminated or truncated:
-            obs, _ = env.reset()
-    union = np.zeros_like(env.global_graph)
-    for _ in range(3000):
-        state = random_box_state(env, rng)
-        for a in range(env.action_space.n):
-            union |= env.transition(state, a)[1]
-        if np.array_equal(union, env.global_graph):
-            break
-    assert edge_names(env, union ^ env.global_graph) == set()
+    assert_steps_match_transition(env, rng)
+    assert_global_graph_is_the_union(env, rng)
 
 
 @pytest.mark.parametrize("name", ["thawing", "cleaning-car"])

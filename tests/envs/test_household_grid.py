@@ -16,7 +16,8 @@ from envs.household import CleaningCarEnv, InstallingPrinterEnv, ThawingEnv
 from envs.household.core import GridTaskEnv
 from envs.household.grid import EAST, NORTH, SOUTH, WEST
 from envs.registry import env_entry, make_env
-from tests.envs.intervention import edge_names, intervened_graph, random_box_state
+from tests.envs.intervention import (assert_global_graph_is_the_union, assert_steps_match_transition, edge_names,
+                                     intervened_graph, random_box_state)
 
 ENVS = {"installing-printer": InstallingPrinterEnv, "thawing": ThawingEnv, "cleaning-car": CleaningCarEnv}
 
@@ -190,22 +191,8 @@ def test_grid_mode_local_graphs_match_interventions(name: str) -> None:
 @pytest.mark.parametrize("name", ENVS)
 def test_grid_mode_step_matches_transition_and_the_global_graph(name: str) -> None:
     env, rng = make_env(f"{name}-grid"), np.random.default_rng(0)
-    obs, _ = env.reset(seed=0)
-    for a in rng.integers(env.action_space.n, size=50):
-        expected = env.transition(obs, a)
-        obs, _, terminated, truncated, info = env.step(a)
-        np.testing.assert_array_equal(obs, expected[0])
-        np.testing.assert_array_equal(info["local_graph"], expected[1])
-        if terminated or truncated:
-            obs, _ = env.reset()
-    union = np.zeros_like(env.global_graph)
-    for _ in range(3000):
-        state = random_box_state(env, rng)
-        for a in range(env.action_space.n):
-            union |= env.transition(state, a)[1]
-        if np.array_equal(union, env.global_graph):
-            break
-    assert edge_names(env, union ^ env.global_graph) == set()
+    assert_steps_match_transition(env, rng)
+    assert_global_graph_is_the_union(env, rng)
 
 
 def test_random_actions_rarely_install_the_printer_in_grid_mode() -> None:

@@ -14,7 +14,7 @@ from envs.household.scripted import RandomPrimitivePolicy
 from envs.minecraft2d import ITEMS, MAX_COUNT, Minecraft2DEnv, Minecraft2DPolicy
 from proto.codec import decode, encode
 from proto.messages import EnvSpec
-from tests.envs.intervention import edge_names, intervened_graph, random_box_state
+from tests.envs.intervention import assert_global_graph_is_the_union, edge_names, intervened_graph, random_box_state
 
 
 def _play(env: Minecraft2DEnv, seed: int) -> tuple[list[np.ndarray], list[dict], bool]:
@@ -171,12 +171,4 @@ def test_local_graphs_are_exactly_what_interventions_find() -> None:
 
 
 def test_global_graph_is_the_union_of_local_graphs() -> None:
-    env, rng = Minecraft2DEnv(), np.random.default_rng(0)
-    union = np.zeros_like(env.global_graph)
-    for _ in range(3000):
-        state = random_box_state(env, rng)
-        for a in range(env.action_space.n):
-            union |= env.transition(state, a)[1]
-        if np.array_equal(union, env.global_graph):
-            break
-    assert edge_names(env, union ^ env.global_graph) == set()
+    assert_global_graph_is_the_union(Minecraft2DEnv(), np.random.default_rng(0))
