@@ -7,7 +7,8 @@ local graphs: the evaluator's :class:`~proto.messages.InducedGraphs`, joined by 
 the simulator's true ones, the chapter's ablation) updates the graph history, fills the skill replay,
 and its skill segments (``started`` steps) become the graph selector's samples, rewarded with eq.
 6.1's novelty; the skill Q-network (double DQN, hindsight relabelled, eq. 6.2) and the DIAYN
-discriminator update ``skild_updates_per_env_step`` times per step taken in. At the switch the
+discriminator update ``skild_updates_per_env_step`` times per step taken in; the switch waits until
+the budget's updates are done (:attr:`SkildLearnerCore.owed_updates`). At the switch the
 history's targets are frozen as the task policy's options (``slot * K + b``), the low level stops
 learning, and a PPO task policy learns from the task reward summed over each skill's steps (the
 decisions stitched per worker as for PPO over skills, :class:`~services.policy_learner.options.
@@ -281,9 +282,25 @@ class SkildLearnerCore:
         return self.task.update(RolloutBatch(c["obs"], c["actions"], c["log_probs"], values, c["rewards"] + bootstrap,
                                              c["dones"], c["next_obs"][-1], policy_version=self.version))
 
+    @property
+    def owed_updates(self) -> float:
+        """Skill updates pre-training still owes before the switch: ``skild_updates_per_env_step`` per env
+        step of the budget taken in, less those done (0 while the replay holds fewer than
+        ``learning_starts`` steps, when no update can run). The switch waits for them, so the budget buys
+        the same number of skill updates however the batches arrive: a burst that spends the whole budget
+        in one drain of the inbox (a slow first publish on a loaded machine) would otherwise end
+        pre-training with no update at all."""
+        if self.agent.replay.size < self.cfg.skill.learning_starts:
+            return 0.0
+        taken = min(self.pretrain_steps, self.cfg.skild_pretrain_steps)
+        return max(0.0, self.cfg.skild_updates_per_env_step * taken - self.updates)
+
     def maybe_switch(self) -> bool:
-        """Switch to task learning once the pre-training budget is spent (True when it just did)."""
+        """Switch to task learning once the pre-training budget is spent and its skill updates are done
+        (True when it just did)."""
         if self.phase == "task" or phase_for(self.pretrain_steps, self.cfg.skild_pretrain_steps) == "pretrain":
+            return False
+        if self.owed_updates > 0:
             return False
         self.phase = "task"
         self.task = task_agent(self._policy_config(), self.cfg.ppo(), seed=self.cfg.seed)

@@ -69,6 +69,22 @@ def test_pretrain_then_task_through_real_messages(tmp_path) -> None:
     assert all(torch.equal(frozen[k], v) for k, v in learner.agent.q.state_dict().items())
 
 
+def test_a_burst_that_spends_the_budget_at_once_still_gets_its_updates(tmp_path) -> None:
+    """The whole pre-training budget arriving in one drain of the inbox (as on a loaded CI machine)
+    must not switch before the budget's skill updates are done."""
+    worker, learner = _stack(tmp_path, budget=256)
+    _hand_over(learner, worker)
+    for _ in range(5):  # 320 steps, past the budget, before any update
+        assert learner.ingest(worker.collect_skills()) == ""
+    owed = learner.owed_updates
+    assert owed == 0.25 * 256 and learner.updates == 0
+    assert not learner.maybe_switch() and learner.phase == "pretrain"
+    while not learner.maybe_switch():
+        assert learner.ready
+        learner.train_step()
+    assert learner.phase == "task" and learner.updates == owed and learner.owed_updates == 0
+
+
 def test_batches_of_the_other_phase_are_dropped(tmp_path) -> None:
     worker, learner = _stack(tmp_path, budget=64)
     _hand_over(learner, worker)
