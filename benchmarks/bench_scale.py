@@ -5,8 +5,8 @@ Per size, in a fresh process (so peak memory is that size's own): seconds per up
 thread), peak resident memory of a learner process (model, Adam state, a 20k-transition replay),
 seconds per all-pairs CMI evaluation of 2,000 transitions, seconds of the final graph (CMI on every
 held-out transition, 20k here), and the time to a best-threshold F1 of 0.9 of the CMI graph with a
-wall-clock budget per size (training in-process, CMI of 2,000 held-out transitions every few
-hundred updates). Prints a table, the fitted growth exponents (log-log least squares over the sizes)
+wall-clock budget per size (training in-process on fresh transitions, CMI of 2,000 held-out
+transitions every 200 updates). Prints a table, the fitted growth exponents (log-log least squares over the sizes)
 and writes a log-log plot; ``--profile`` prints where an update and a CMI evaluation spend their
 time at the largest size.
 
@@ -28,7 +28,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -88,10 +88,18 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: in
     trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
     trainer.to(where)
     rng = np.random.default_rng(seed)
+    data = {"train": train, "draws": 0}
 
     def update() -> None:
-        index = torch.from_numpy(rng.integers(0, len(train[0]), 64)).to(where)
-        trainer.update(*(x[index] for x in train))
+        current = data["train"]
+        index = torch.from_numpy(rng.integers(0, len(current[0]), 64)).to(where)
+        trainer.update(*(x[index] for x in current))
+
+    def fresh(count: int) -> None:
+        """New training transitions (as the stack's env-workers stream them), drawn off the clock."""
+        data["draws"] += 1
+        new, _ = random_transitions(env_kwargs(graph, objects), count, seed + 1000 * data["draws"], heldout_fraction=0.0)
+        data["train"] = tuple(x.to(where) for x in new.tensors())
 
     timed(update, 3, where)  # warm-up
     out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors, "device": device,
@@ -101,7 +109,8 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: in
     out["update_s"], out["update_cpu_s"] = timed(update, 10, where)
     out["cmi_2k_s"], out["cmi_2k_cpu_s"] = timed(lambda: trainer.model.cmi(*sample), 2, where)
     out["final_graph_s"], out["final_graph_cpu_s"] = timed(lambda: trainer.model.cmi(*held), 1, where)
-    out.update(time_to_f1(trainer, update, sample, env.global_graph, budget))
+    out.update(time_to_f1(trainer, update, sample, env.global_graph, budget, fresh=fresh))
+    out["fresh_draws"] = data["draws"]
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if where.type == "cuda":
         out["peak_gpu_mb"] = torch.cuda.max_memory_allocated(where) / 2**20
@@ -109,19 +118,35 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: in
 
 
 def time_to_f1(trainer: CDLTrainer, update, sample: tuple[torch.Tensor, ...], truth: np.ndarray,
-               budget: float, target: float = 0.9, every: int = 200) -> dict[str, Any]:
-    """Train until the CMI graph's best-threshold F1 reaches ``target`` or ``budget`` seconds pass."""
-    started, cpu, best = time.perf_counter(), time.process_time(), 0.0
-    while time.perf_counter() - started < budget:
+               budget: float, target: float = 0.9, every: int = 200,
+               fresh: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Train until the CMI graph's best-threshold F1 reaches ``target`` or ``budget`` seconds of training
+    pass. ``fresh(n)``, when given, replaces the training set by ``n`` new transitions after every check
+    (``every`` x 64 of them, so each is seen about once, as in the stack's stream), with the clocks
+    stopped while it runs. A fixed set does not measure the method past a few epochs: the 20,000
+    transitions of the set above, passed ~80 times in 600 s at 10 objects, gave best-threshold F1 0.835
+    after 120 s and 0.581 after 600 s (overfitting). ``best_f1_reached`` is the highest F1 of any
+    check; ``last_f1`` the last."""
+    wall = cpu = 0.0
+    best = last = 0.0
+    checks = 0
+    while wall < budget:
+        checks += 1
+        t0, c0 = time.perf_counter(), time.process_time()
         for _ in range(every):
             update()
         cmi = trainer.model.cmi(*sample).cpu().numpy()
-        best = score_graph(cmi, truth, trainer.cfg.cmi_threshold)["best_threshold_f1"]
+        last = score_graph(cmi, truth, trainer.cfg.cmi_threshold)["best_threshold_f1"]
+        best = max(best, last)
         trainer.set_parents(cmi >= trainer.cfg.cmi_threshold)
-        if best >= target:
-            return {"to_f1_0.9_s": time.perf_counter() - started, "to_f1_0.9_cpu_s": time.process_time() - cpu,
-                    "updates_to_f1": trainer.updates, "best_f1_reached": best}
-    return {"to_f1_0.9_s": None, "updates_to_f1": None, "best_f1_reached": best, "budget_s": budget}
+        wall, cpu = wall + time.perf_counter() - t0, cpu + time.process_time() - c0
+        if last >= target:
+            return {"to_f1_0.9_s": wall, "to_f1_0.9_cpu_s": cpu, "updates_to_f1": trainer.updates,
+                    "best_f1_reached": best, "last_f1": last, "checks": checks, "fresh_data": fresh is not None}
+        if fresh is not None:
+            fresh(every * 64)
+    return {"to_f1_0.9_s": None, "updates_to_f1": None, "best_f1_reached": best, "last_f1": last,
+            "budget_s": budget, "checks": checks, "fresh_data": fresh is not None}
 
 
 def exponents(rows: list[dict[str, Any]], key: str) -> float | None:
@@ -230,12 +255,14 @@ def report(rows: list[dict[str, Any]], out: Path) -> None:
           "\n| graph | objects | d_S | parameters | s/update | s/CMI (n) | s final graph (n) "
           "| peak RSS MB | s to best F1 0.9 (updates) | best F1 |\n|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        ran = r["to_f1_0.9_s"] or r.get("budget_s")
         reach = (f"{r['to_f1_0.9_s']:.0f} ({r['updates_to_f1']:,})" if r["to_f1_0.9_s"]
-                 else f"> {r['budget_s']:.0f} (not reached)" if r.get("budget_s") else "not run (budget 0)")
+                 else f"> {r['budget_s']:.0f} (not reached)" if ran else "not run (budget 0)")
+        best = f"{r['best_f1_reached']:.3f}" if ran else "-"
         print(f"| {r['graph']} | {r['objects']} | {r['factors']} | {r['parameters']:,} | "
               f"{r['update_cpu_s']:.3f} ({r['update_s']:.3f}) | {r['cmi_2k_cpu_s']:.2f} ({r['cmi_2k_s']:.2f}; "
               f"{r['cmi_samples']:,}) | {r['final_graph_cpu_s']:.1f} ({r['final_graph_s']:.1f}; {r['final_samples']:,}) | "
-              f"{r['peak_rss_mb']:.0f} | {reach} | {r['best_f1_reached']:.3f} |")
+              f"{r['peak_rss_mb']:.0f} | {reach} | {best} |")
     for graph in dict.fromkeys(r["graph"] for r in rows):
         mine = [r for r in rows if r["graph"] == graph]
         if len(mine) > 1:

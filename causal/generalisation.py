@@ -68,7 +68,8 @@ class Transitions:
 def random_transitions(env_kwargs: Mapping[str, Any], count: int, seed: int = 0,
                        heldout_fraction: float = 0.1) -> tuple[Transitions, Transitions]:
     """``count`` transitions of uniformly random actions on ``ChemicalEnv(**env_kwargs)``; whole
-    episodes go to the held-out set with probability ``heldout_fraction``. Returns (train, heldout)."""
+    episodes go to the held-out set with probability ``heldout_fraction``. Returns (train, heldout); the
+    held-out set is empty when ``heldout_fraction`` is 0."""
     env = ChemicalEnv(**env_kwargs)
     rng = np.random.default_rng(seed)
     parts: dict[bool, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {False: [], True: []}
@@ -80,12 +81,15 @@ def random_transitions(env_kwargs: Mapping[str, Any], count: int, seed: int = 0,
         total += len(actions)
         episode += 1
 
-    def join(chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Transitions:
+    def join(chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wanted: bool = True) -> Transitions:
+        if not chunks and not wanted:
+            d = env.env_spec().num_factors
+            return Transitions(np.zeros((0, d), np.float32), np.zeros((0, 1), np.float32), np.zeros((0, d), np.float32))
         if not chunks:
             raise ValueError("no episode landed in this split: collect more transitions")
         return Transitions(*(np.concatenate(column) for column in zip(*chunks)))
 
-    return join(parts[False]), join(parts[True])
+    return join(parts[False]), join(parts[True], wanted=heldout_fraction > 0)
 
 
 @dataclass(frozen=True)
