@@ -88,18 +88,18 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: in
     trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
     trainer.to(where)
     rng = np.random.default_rng(seed)
-    data = {"train": train, "draws": 0}
+    draws = 0
 
     def update() -> None:
-        current = data["train"]
-        index = torch.from_numpy(rng.integers(0, len(current[0]), 64)).to(where)
-        trainer.update(*(x[index] for x in current))
+        index = torch.from_numpy(rng.integers(0, len(train[0]), 64)).to(where)
+        trainer.update(*(x[index] for x in train))
 
     def fresh(count: int) -> None:
         """New training transitions (as the stack's env-workers stream them), drawn off the clock."""
-        data["draws"] += 1
-        new, _ = random_transitions(env_kwargs(graph, objects), count, seed + 1000 * data["draws"], heldout_fraction=0.0)
-        data["train"] = tuple(x.to(where) for x in new.tensors())
+        nonlocal train, draws
+        draws += 1
+        new, _ = random_transitions(env_kwargs(graph, objects), count, seed + 1000 * draws, heldout_fraction=0.0)
+        train = tuple(x.to(where) for x in new.tensors())
 
     timed(update, 3, where)  # warm-up
     out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors, "device": device,
@@ -110,7 +110,7 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: in
     out["cmi_2k_s"], out["cmi_2k_cpu_s"] = timed(lambda: trainer.model.cmi(*sample), 2, where)
     out["final_graph_s"], out["final_graph_cpu_s"] = timed(lambda: trainer.model.cmi(*held), 1, where)
     out.update(time_to_f1(trainer, update, sample, env.global_graph, budget, fresh=fresh))
-    out["fresh_draws"] = data["draws"]
+    out["fresh_draws"] = draws
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if where.type == "cuda":
         out["peak_gpu_mb"] = torch.cuda.max_memory_allocated(where) / 2**20

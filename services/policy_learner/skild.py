@@ -242,9 +242,14 @@ class SkildLearnerCore:
     def ready(self) -> bool:
         if self.phase == "task":
             return len(self.pending) >= self.cfg.rollout_batches
-        wanted = self.cfg.skild_updates_per_env_step * self.pretrain_steps
-        return (self.agent.replay.size >= self.cfg.skill.learning_starts and self.updates < wanted) \
-            or len(self.segments) >= self.cfg.skill.selector_batch
+        return self._skill_update_due or len(self.segments) >= self.cfg.skill.selector_batch
+
+    @property
+    def _skill_update_due(self) -> bool:
+        """A skill update is due: the replay holds ``learning_starts`` steps and fewer than
+        ``skild_updates_per_env_step`` updates per pre-training step taken in were done."""
+        return self.agent.replay.size >= self.cfg.skill.learning_starts \
+            and self.updates < self.cfg.skild_updates_per_env_step * self.pretrain_steps
 
     def train_step(self) -> dict[str, float]:
         """Pre-training: a skill-Q / discriminator update and, when enough segments are in, a selector
@@ -254,8 +259,7 @@ class SkildLearnerCore:
             self.task_updates += 1
         else:
             stats: dict[str, float] = {}
-            if self.agent.replay.size >= self.cfg.skill.learning_starts \
-                    and self.updates < self.cfg.skild_updates_per_env_step * self.pretrain_steps:
+            if self._skill_update_due:
                 stats = self.agent.update()
                 self.updates += 1
             if len(self.segments) >= self.cfg.skill.selector_batch and self.agent.history.targets:
