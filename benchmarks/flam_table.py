@@ -15,7 +15,8 @@ monolithic: a block of ``d_a`` channels of its one latent) against the 4 agents'
 ``dci_*_positions``: the chapter's Table 8.2 ("each factor as a latent variable ... how well it encodes
 each agent's information ... position prediction accuracy"): each slot's state xi_t against every
 agent's cell (x and y probes, summed per agent), FLAM and the two-stage baseline only (the monolithic
-model has no factor states). ``dci_*_positions_latent``: the latent actions (FLAM per slot,
+model has no factor states). Table 8.5-8.6's ablations of FLAM: ``--no-temporal-attention`` (SAVi-style
+slots) and ``--coupling global`` (Global-Coupled FLAM). ``dci_*_positions_latent``: the latent actions (FLAM per slot,
 monolithic in K chunks of ``d_a``: the equal-capacity comparison) against the positions at t+1 they
 were inferred with. ``random``: Gaussian codes of the same shapes (chance).
 One torch thread. Budget: results.md's run (1,200 updates per model) took 4.5 min per autoencoder,
@@ -60,6 +61,8 @@ class Args:
     num_slots: int
     mask_prior: str
     aggregator: str
+    no_temporal_attention: bool
+    coupling: str
     slot_reconstruction: float
     slot_stage_updates: int
     out: str
@@ -86,6 +89,10 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--num-slots", type=int, default=0,
                    help="K (0: one per independently acting agent plus one for the background)")
     p.add_argument("--aggregator", choices=("cross-attention", "broadcast"), default="cross-attention")
+    p.add_argument("--no-temporal-attention", action="store_true",
+                   help="Table 8.5's ablation: SAVi-style slots, no temporal attention in the factorizer")
+    p.add_argument("--coupling", choices=("per-slot", "global"), default="per-slot",
+                   help="global: Table 8.5's Global-Coupled FLAM")
     p.add_argument("--mask-prior", choices=("none", "annealed"), default="none",
                    help="FLAM: Dyn-O's annealed mask prior from the renderer's masks in training (never at evaluation)")
     p.add_argument("--slot-reconstruction", type=float, default=0.0,
@@ -247,7 +254,8 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     train_frames, test_frames = torch.from_numpy(train["frames"]), torch.from_numpy(test["frames"])
     num_slots = args.num_slots or (env.num_agents - 1 if env.correlated else env.num_agents) + 1
     config = FLAMConfig(num_slots=num_slots, slot_dim=args.slot_dim, action_dim=args.action_dim,
-                        beta_kl=args.beta_kl, lr=args.lr, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator)
+                        beta_kl=args.beta_kl, lr=args.lr, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator,
+                        temporal_attention=not args.no_temporal_attention, coupling=args.coupling)
     autoencoder = FSQAutoencoder(config.levels)
     start = time.time()
     fit_autoencoder(autoencoder, train_frames.flatten(0, 1), args.ae_updates, seed=args.seed)

@@ -46,6 +46,13 @@ class FLAMConfig:
                                              "through a spatial-broadcast decoder", choices=("cross-attention", "broadcast"))
     slot_reconstruction: float = doc(0.0, "weight of an added slot-decoder reconstruction of e_t from xi_t "
                                           "(Dyn-O's eq. 7.1 term; 0: eq. 8.6 alone, the chapter's)")
+    temporal_attention: bool = doc(True, "causal temporal self-attention in the factorizer (eqs. 8.2-8.3); "
+                                         "False: Table 8.5's ablation, SAVi-style slots started from the "
+                                         "previous frame's")
+    coupling: str = doc("per-slot", "per-slot: alpha^i from all slots at t and slot i at t+1, slot i's next "
+                                    "value from all slots at t and alpha^i (eqs. 8.4-8.5); global: Table "
+                                    "8.5's Global-Coupled FLAM (the IDM reads every slot at t and t+1, the "
+                                    "FDM every latent action)", choices=("per-slot", "global"))
     lr: float = doc(1e-3, "Adam learning rate")
     batch_size: int = doc(16, "clips per update")
 
@@ -54,6 +61,8 @@ class FLAMConfig:
             raise ValueError("FLAM sizes, iterations and batch size must be positive")
         if self.aggregator not in ("cross-attention", "broadcast"):
             raise ValueError(f"aggregator must be 'cross-attention' or 'broadcast', got {self.aggregator!r}")
+        if self.coupling not in ("per-slot", "global"):
+            raise ValueError(f"coupling must be 'per-slot' or 'global', got {self.coupling!r}")
         if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0) or self.slot_dim % 4:
             raise ValueError("lr must be > 0, beta_kl and slot_reconstruction >= 0 and slot_dim a multiple of 4")
 
@@ -88,9 +97,10 @@ class FLAM(nn.Module):
         super().__init__()
         d_e, d = len(config.levels), config.slot_dim
         self.config = config
-        self.factorizer = Factorizer(d_e, num_tokens, config.num_slots, d, config.iterations)
-        self.idm = InverseDynamics(d, config.action_dim)
-        self.fdm = ForwardDynamics(d, config.action_dim)
+        self.factorizer = Factorizer(d_e, num_tokens, config.num_slots, d, config.iterations, config.temporal_attention)
+        coupled = config.coupling == "global"
+        self.idm = InverseDynamics(d, config.action_dim, coupled)
+        self.fdm = ForwardDynamics(d, config.action_dim, coupled)
         self.aggregator = (BroadcastAggregator if config.aggregator == "broadcast" else Aggregator)(d_e, num_tokens, d)
         self.slot_decoder = (SlotDecoder(num_tokens, d_e, SlotConfig(slot_dim=d, decoder_hidden=d))
                              if config.slot_reconstruction > 0 else None)

@@ -62,6 +62,10 @@ class FLAMRunConfig:
     aggregator: str = doc("broadcast", "broadcast (the slots alone draw e^_{t+1}) or cross-attention (the "
                                        "chapter's: e_t's tokens attend to the predicted slots)",
                           choices=("broadcast", "cross-attention"))
+    temporal_attention: bool = doc(True, "causal temporal self-attention in the factorizer (eqs. 8.2-8.3); "
+                                         "false: Table 8.5's ablation (SAVi-style slots)")
+    coupling: str = doc("per-slot", "per-slot (eqs. 8.4-8.5) or global (Table 8.5's Global-Coupled FLAM)",
+                        choices=("per-slot", "global"))
     mask_prior: str = doc("annealed", "annealed: Dyn-O's prior from the renderer's segments, dropped with "
                                       "probability log(1+u)/log(1+U) over lam_updates; none: no masks",
                           choices=("annealed", "none"))
@@ -87,13 +91,16 @@ class FLAMRunConfig:
             raise ValueError(f"beta_kl must be a finite number >= 0, got {self.beta_kl}")
         if self.aggregator not in ("broadcast", "cross-attention"):
             raise ValueError(f"aggregator must be 'broadcast' or 'cross-attention', got {self.aggregator!r}")
+        if self.coupling not in ("per-slot", "global"):
+            raise ValueError(f"coupling must be 'per-slot' or 'global', got {self.coupling!r}")
         if self.mask_prior not in ("annealed", "none"):
             raise ValueError(f"mask_prior must be 'annealed' or 'none', got {self.mask_prior!r}")
 
     def lam(self, num_agents: int) -> FLAMConfig:
         return FLAMConfig(num_slots=self.num_slots or num_agents + 1, slot_dim=self.slot_dim,
                           action_dim=self.action_dim, iterations=self.iterations, levels=FSQ_LEVELS,
-                          beta_kl=self.beta_kl, aggregator=self.aggregator, lr=self.lr, batch_size=self.batch_size)
+                          beta_kl=self.beta_kl, aggregator=self.aggregator, lr=self.lr, batch_size=self.batch_size,
+                          temporal_attention=self.temporal_attention, coupling=self.coupling)
 
 
 def multigrid_geometry(layout: FactorLayout) -> tuple[int, int]:

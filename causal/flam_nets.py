@@ -98,9 +98,14 @@ class TokenEmbedding(nn.Module):
 
 class Factorizer(nn.Module):
     """Eqs. 8.2-8.3: slot attention over each frame's tokens from K learned initial slots, each
-    iteration followed by causal temporal self-attention of every slot over its own past values."""
+    iteration followed by causal temporal self-attention of every slot over its own past values.
 
-    def __init__(self, feature_dim: int, num_tokens: int, num_slots: int, dim: int, iterations: int) -> None:
+    ``temporal=False`` is Table 8.5's ablation "w/o temporal attention": as in SAVi, the frames are
+    taken in order and each frame's slot attention starts from the previous frame's slots (the first
+    frame's from the learned initial slots), with no temporal attention."""
+
+    def __init__(self, feature_dim: int, num_tokens: int, num_slots: int, dim: int, iterations: int,
+                 temporal: bool = True) -> None:
         super().__init__()
         self.iterations, self.scale = iterations, dim ** -0.5
         self.embed = TokenEmbedding(feature_dim, num_tokens, dim)
@@ -109,7 +114,20 @@ class Factorizer(nn.Module):
         self.to_q, self.to_k, self.to_v = (nn.Linear(dim, dim, bias=False) for _ in range(3))
         self.gru = nn.GRUCell(dim, dim)
         self.mlp = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, dim))
-        self.temporal = AttentionBlock(dim)
+        self.temporal = AttentionBlock(dim) if temporal else None
+
+    def _attend(self, slots: torch.Tensor, keys: torch.Tensor, values: torch.Tensor,
+                allowed: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """One slot-attention iteration on ``M`` frames: slots ``[M, K, D]``, keys and values
+        ``[M, n, D]``, ``allowed`` ``[M, K, n]`` or None -> (slots, attention ``[M, K, n]``)."""
+        m, k, d = slots.shape
+        logits = torch.einsum("mkd,mnd->mkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
+        if allowed is not None:
+            logits = logits.masked_fill(~allowed, -1e9)
+        attention = logits.softmax(dim=1)
+        updates = (attention / (attention.sum(dim=2, keepdim=True) + 1e-8)) @ values
+        slots = self.gru(updates.reshape(-1, d), slots.reshape(-1, d)).view(m, k, d)
+        return slots + self.mlp(slots), attention
 
     def forward(self, features: torch.Tensor, allowed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Slots ``[B, T, K, D]`` of features ``[B, T, n, d_e]`` and the last slot attention
@@ -119,20 +137,32 @@ class Factorizer(nn.Module):
         tokens = self.norm_tokens(self.embed(features)).flatten(0, 1)
         keys, values = self.to_k(tokens), self.to_v(tokens)
         k, d = self.initial.shape
+        if self.temporal is None:
+            return self._sequential(keys.view(b, t, n, d), values.view(b, t, n, d), allowed)
         slots = self.initial.expand(b * t, k, d)
         causal = torch.ones(t, t, dtype=torch.bool).triu(1)
+        frame_allowed = None if allowed is None else allowed.flatten(0, 1)
         for _ in range(self.iterations):
-            logits = torch.einsum("mkd,mnd->mkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
-            if allowed is not None:
-                logits = logits.masked_fill(~allowed.flatten(0, 1), -1e9)
-            attention = logits.softmax(dim=1)
-            updates = (attention / (attention.sum(dim=2, keepdim=True) + 1e-8)) @ values
-            slots = self.gru(updates.reshape(-1, d), slots.reshape(-1, d)).view(b * t, k, d)
-            slots = slots + self.mlp(slots)
+            slots, attention = self._attend(slots, keys, values, frame_allowed)
             per_slot = slots.view(b, t, k, d).transpose(1, 2).reshape(b * k, t, d)
             per_slot = self.temporal(per_slot, per_slot, causal)
             slots = per_slot.view(b, k, t, d).transpose(1, 2).reshape(b * t, k, d)
         return slots.view(b, t, k, d), attention.view(b, t, k, n)
+
+    def _sequential(self, keys: torch.Tensor, values: torch.Tensor, allowed: torch.Tensor | None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """SAVi-style slots (no temporal attention): frame by frame, each initialised from the last."""
+        b, t = keys.shape[:2]
+        k, d = self.initial.shape
+        slots = self.initial.expand(b, k, d)
+        all_slots, all_attention = [], []
+        for step in range(t):
+            for _ in range(self.iterations):
+                slots, attention = self._attend(slots, keys[:, step], values[:, step],
+                                                None if allowed is None else allowed[:, step])
+            all_slots.append(slots)
+            all_attention.append(attention)
+        return torch.stack(all_slots, dim=1), torch.stack(all_attention, dim=1)
 
 
 def per_slot_cross(block: AttentionBlock, query: torch.Tensor, keys: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -145,29 +175,39 @@ class InverseDynamics(nn.Module):
     """Eq. 8.4: alpha^i from all slots at t and slot i at t+1, as a Gaussian ``(mu, log_sigma)``.
 
     Spatial self-attention across the slots at t, then slot i's next value cross-attends to
-    ``[its spatial summary, its next value]``; M_mu and M_sigma project to ``d_a`` channels."""
+    ``[its spatial summary, its next value]``; M_mu and M_sigma project to ``d_a`` channels.
+    ``coupled=True`` is Table 8.5's Global-Coupled FLAM: alpha^i from all slots at t and t+1 (slot i's
+    next value attends to every slot's summary and every slot's next value)."""
 
-    def __init__(self, dim: int, action_dim: int) -> None:
+    def __init__(self, dim: int, action_dim: int, coupled: bool = False) -> None:
         super().__init__()
         self.spatial, self.temporal = AttentionBlock(dim), AttentionBlock(dim)
         self.to_mu, self.to_log_sigma = nn.Linear(dim, action_dim), posterior_scale(dim, action_dim)
+        self.coupled = coupled
 
     def forward(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         summary = self.spatial(current, current)
-        alpha = per_slot_cross(self.temporal, nxt, (summary, nxt))
+        if self.coupled:  # Global-Coupled FLAM (Table 8.5): every slot's next value attends to all slots at t and t+1
+            alpha = self.temporal(nxt, torch.cat([summary, nxt], dim=1))
+        else:
+            alpha = per_slot_cross(self.temporal, nxt, (summary, nxt))
         return self.to_mu(alpha), self.to_log_sigma(alpha).clamp(-8.0, 4.0)
 
 
 class ForwardDynamics(nn.Module):
-    """Eq. 8.5: slot i's next value from all slots at t and its own latent action alpha^i only."""
+    """Eq. 8.5: slot i's next value from all slots at t and its own latent action alpha^i only
+    (``coupled=True``, Global-Coupled FLAM: from all slots at t and every slot's latent action)."""
 
-    def __init__(self, dim: int, action_dim: int) -> None:
+    def __init__(self, dim: int, action_dim: int, coupled: bool = False) -> None:
         super().__init__()
         self.spatial, self.temporal = AttentionBlock(dim), AttentionBlock(dim)
         self.action_in = nn.Linear(action_dim, dim)
+        self.coupled = coupled
 
     def forward(self, current: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         summary = self.spatial(current, current)
+        if self.coupled:  # Global-Coupled FLAM (Table 8.5): slot i's next value reads every latent action
+            return self.temporal(current, torch.cat([summary, self.action_in(alpha)], dim=1))
         return per_slot_cross(self.temporal, current, (summary, self.action_in(alpha)))
 
 

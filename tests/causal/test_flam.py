@@ -198,3 +198,70 @@ def test_fourier_positions_are_distinct_and_the_broadcast_aggregator_mixes_slots
     torch.testing.assert_close(one_slot, out[:, 0, :, :-1])
     with pytest.raises(ValueError, match="aggregator"):
         FLAMConfig(aggregator="sum")
+
+
+def _variant(**changes) -> FLAM:
+    torch.manual_seed(0)
+    return FLAM(FLAMConfig(**{**CONFIG.__dict__, **changes}), TOKENS).eval()
+
+
+def test_global_coupling_lets_every_slot_read_every_latent_action_and_next_slot() -> None:
+    """Table 8.5's Global-Coupled FLAM: the FDM's slot i reads every alpha^j and the IDM's alpha^i every
+    slot at t+1 (the per-slot model's independence, tested above, is what it gives up)."""
+    model = _variant(coupling="global")
+    current = torch.randn(5, CONFIG.num_slots, CONFIG.slot_dim)
+    alpha = torch.randn(5, CONFIG.num_slots, CONFIG.action_dim, requires_grad=True)
+    predicted = model.fdm(current, alpha)
+    assert predicted.shape == current.shape
+    for i in range(CONFIG.num_slots):
+        (grad,) = torch.autograd.grad(predicted[:, i].sum(), alpha, retain_graph=True)
+        assert (grad.abs().sum(dim=(0, 2)) > 1e-6).all()
+    nxt = torch.randn(5, CONFIG.num_slots, CONFIG.slot_dim)
+    mu, _ = model.idm(current, nxt)
+    bumped = nxt.clone()
+    bumped[:, 2] += torch.randn(5, CONFIG.slot_dim)  # not a constant shift: the keys' LayerNorm removes those
+    assert ((model.idm(current, bumped)[0] - mu).abs().sum(dim=(0, 2)) > 1e-4).all()
+    assert model(_features(b=2, t=3), sample=False).predicted.shape == (2, 2, TOKENS, 3)
+    with pytest.raises(ValueError, match="coupling"):
+        FLAMConfig(coupling="pairwise")
+
+
+def test_without_temporal_attention_slots_start_from_the_previous_frames() -> None:
+    """Table 8.5's "w/o temporal attention" (SAVi-style): no temporal block; frame t's slots depend on
+    frames up to t only, frame 0's are a single frame's slot attention from the learned initial slots."""
+    model = _variant(temporal_attention=False)
+    assert model.factorizer.temporal is None
+    features = _features(b=1, t=5)
+    slots, attention = model.factorizer(features)
+    assert slots.shape == (1, 5, CONFIG.num_slots, CONFIG.slot_dim)
+    torch.testing.assert_close(attention.sum(dim=2), torch.ones(1, 5, TOKENS))
+    single, _ = model.factorizer(features[:, :1])
+    torch.testing.assert_close(single[:, 0], slots[:, 0])
+    changed = features.clone()
+    changed[:, 3] = -changed[:, 3]
+    slots_changed, _ = model.factorizer(changed)
+    torch.testing.assert_close(slots_changed[:, :3], slots[:, :3])
+    assert (slots_changed[:, 3:] - slots[:, 3:]).abs().amax(dim=(0, 2, 3)).min() > 1e-4  # frame 4 through frame 3's slots
+    earlier = features.clone()
+    earlier[:, 0] = -earlier[:, 0]
+    assert (model.factorizer(earlier)[0][:, 1] - slots[:, 1]).abs().max() > 1e-4
+    trainer = LAMTrainer(model.train(), seed=0)
+    clips = _features(b=4, t=3, seed=5)
+    first = trainer.update(clips)["loss"]
+    for _ in range(40):
+        last = trainer.update(clips)["loss"]
+    assert last < 0.7 * first
+
+
+def test_the_default_factorizer_is_unchanged_by_the_ablation_switch() -> None:
+    """The per-slot, temporal-attention FLAM (the default) builds the same parameters as before the
+    ablations existed: a checkpoint of it loads into ``FLAMConfig()``'s model and gives the same slots."""
+    model = _variant()
+    names = set(model.state_dict())
+    assert any(name.startswith("factorizer.temporal.") for name in names)
+    ablated = _variant(temporal_attention=False)
+    assert not any(name.startswith("factorizer.temporal.") for name in ablated.state_dict())
+    again = FLAM(CONFIG, TOKENS).eval()
+    again.load_state_dict(model.state_dict())
+    features = _features(b=2, t=4)
+    torch.testing.assert_close(again.factorizer(features)[0], model.factorizer(features)[0])

@@ -65,8 +65,10 @@ def test_live_scores_come_every_live_every_latent_action_updates() -> None:
     assert live == [[], [], expected, [], expected, []]  # latent-action updates 1 and 3 of 4
 
 
-def test_weights_travel_as_a_msgpack_message_and_rebuild_the_same_model() -> None:
-    trainer = FLAMTrainer(_layout(), TINY, seed=0)
+@pytest.mark.parametrize("ablation", [{}, {"temporal_attention": False, "coupling": "global"}])
+def test_weights_travel_as_a_msgpack_message_and_rebuild_the_same_model(ablation: dict) -> None:
+    """Also for Table 8.5's ablations: the config carries them, so the receiver builds the same networks."""
+    trainer = FLAMTrainer(_layout(), FLAMRunConfig(**{**TINY.__dict__, **ablation}), seed=0)
     for u in range(3):
         trainer.update(*_batch(u))
     sent = Weights(model="flam", version=1, config_json=trainer.config_json(), tensors=export_tensors(trainer.model),
@@ -80,6 +82,8 @@ def test_weights_travel_as_a_msgpack_message_and_rebuild_the_same_model() -> Non
     with torch.no_grad():
         expected = trainer.model.lam.infer(trainer.model.features(frames))
         assert torch.equal(model.lam.infer(model.features(frames)), expected)
+    assert (model.lam.factorizer.temporal is None) == (ablation.get("temporal_attention") is False)
+    assert model.lam.fdm.coupled == (ablation.get("coupling") == "global")
 
 
 def test_a_checkpoint_resumes_the_same_training() -> None:
