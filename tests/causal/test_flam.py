@@ -132,8 +132,10 @@ def test_shapes_rollout_and_seeded_determinism(cls: type) -> None:
     torch.testing.assert_close(rollout(again, features, FSQ(CONFIG.levels)), predicted)
 
 
-def test_a_short_fit_of_eq_8_6_lowers_the_loss() -> None:
-    model = _flam().train()
+@pytest.mark.parametrize("ablation", [{}, {"temporal_attention": False}, {"coupling": "global"}])
+def test_a_short_fit_of_eq_8_6_lowers_the_loss(ablation: dict) -> None:
+    """FLAM and Table 8.5's ablations all learn."""
+    model = _variant(**ablation).train()
     trainer = LAMTrainer(model, seed=0)
     features = _features(b=4, t=3, seed=5)
     first = trainer.update(features)["loss"]
@@ -245,12 +247,6 @@ def test_without_temporal_attention_slots_start_from_the_previous_frames() -> No
     earlier = features.clone()
     earlier[:, 0] = -earlier[:, 0]
     assert (model.factorizer(earlier)[0][:, 1] - slots[:, 1]).abs().max() > 1e-4
-    trainer = LAMTrainer(model.train(), seed=0)
-    clips = _features(b=4, t=3, seed=5)
-    first = trainer.update(clips)["loss"]
-    for _ in range(40):
-        last = trainer.update(clips)["loss"]
-    assert last < 0.7 * first
 
 
 def test_the_default_factorizer_is_unchanged_by_the_ablation_switch() -> None:
