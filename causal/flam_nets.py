@@ -165,8 +165,12 @@ class Factorizer(nn.Module):
         return torch.stack(all_slots, dim=1), torch.stack(all_attention, dim=1)
 
 
-def per_slot_cross(block: AttentionBlock, query: torch.Tensor, keys: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """Each slot's query ``[M, K, D]`` attends only to its own keys (each ``[M, K, D]``): ``[M, K, D]``."""
+def per_slot_cross(block: AttentionBlock, query: torch.Tensor, keys: tuple[torch.Tensor, ...],
+                   coupled: bool = False) -> torch.Tensor:
+    """Each slot's query ``[M, K, D]`` attends only to its own keys (each ``[M, K, D]``): ``[M, K, D]``.
+    ``coupled=True`` (Table 8.5's Global-Coupled FLAM): every slot's query attends to every slot's keys."""
+    if coupled:
+        return block(query, torch.cat(keys, dim=1))
     m, k, d = query.shape
     return block(query.reshape(m * k, 1, d), torch.stack(keys, dim=2).reshape(m * k, len(keys), d)).view(m, k, d)
 
@@ -187,10 +191,7 @@ class InverseDynamics(nn.Module):
 
     def forward(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         summary = self.spatial(current, current)
-        if self.coupled:  # Global-Coupled FLAM (Table 8.5): every slot's next value attends to all slots at t and t+1
-            alpha = self.temporal(nxt, torch.cat([summary, nxt], dim=1))
-        else:
-            alpha = per_slot_cross(self.temporal, nxt, (summary, nxt))
+        alpha = per_slot_cross(self.temporal, nxt, (summary, nxt), self.coupled)
         return self.to_mu(alpha), self.to_log_sigma(alpha).clamp(-8.0, 4.0)
 
 
@@ -206,9 +207,7 @@ class ForwardDynamics(nn.Module):
 
     def forward(self, current: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         summary = self.spatial(current, current)
-        if self.coupled:  # Global-Coupled FLAM (Table 8.5): slot i's next value reads every latent action
-            return self.temporal(current, torch.cat([summary, self.action_in(alpha)], dim=1))
-        return per_slot_cross(self.temporal, current, (summary, self.action_in(alpha)))
+        return per_slot_cross(self.temporal, current, (summary, self.action_in(alpha)), self.coupled)
 
 
 class Aggregator(nn.Module):
