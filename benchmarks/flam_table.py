@@ -58,6 +58,8 @@ class Args:
     variant: str
     models: tuple[str, ...]
     lr: float
+    lr_decay: str
+    lr_final: float
     num_slots: int
     mask_prior: str
     aggregator: str
@@ -86,6 +88,9 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--models", nargs="+", choices=("flam", "monolithic", "two-stage"), default=["flam", "monolithic"],
                    help="two-stage: the slot baseline of Table 8.1 (slots learned first, frozen, then per-slot latent actions)")
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--lr-decay", choices=("constant", "cosine"), default="constant",
+                   help="cosine: the learning rate decays to --lr-final over --updates (not in the chapter)")
+    p.add_argument("--lr-final", type=float, default=1e-4)
     p.add_argument("--num-slots", type=int, default=0,
                    help="K (0: one per independently acting agent plus one for the background)")
     p.add_argument("--aggregator", choices=("cross-attention", "broadcast"), default="cross-attention")
@@ -254,7 +259,8 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     train_frames, test_frames = torch.from_numpy(train["frames"]), torch.from_numpy(test["frames"])
     num_slots = args.num_slots or (env.num_agents - 1 if env.correlated else env.num_agents) + 1
     config = FLAMConfig(num_slots=num_slots, slot_dim=args.slot_dim, action_dim=args.action_dim,
-                        beta_kl=args.beta_kl, lr=args.lr, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator,
+                        beta_kl=args.beta_kl, lr=args.lr, lr_final=args.lr_final,
+                        lr_decay_updates=args.updates if args.lr_decay == "cosine" else 0, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator,
                         temporal_attention=not args.no_temporal_attention, coupling=args.coupling)
     autoencoder = FSQAutoencoder(config.levels)
     start = time.time()

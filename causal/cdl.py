@@ -27,6 +27,7 @@ from causal.cdl_max import _MaxAndDropOne, masked_max, max_and_runner_up, traini
 from causal.factored import FactorCodec, FactorLayout
 from causal.method import layout_from_config
 from causal.method import model_config_json as method_config_json
+from causal.schedules import cosine_lr
 from proto.settings import doc
 
 LOG_2PI = math.log(2 * math.pi)
@@ -74,10 +75,7 @@ class CDLConfig:
 
     def lr_at(self, updates: int) -> float:
         """The learning rate of update number ``updates`` (0-based) under the cosine schedule."""
-        if self.lr_decay_updates <= 0:
-            return self.lr
-        progress = min(updates / self.lr_decay_updates, 1.0)
-        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1.0 + math.cos(math.pi * progress))
+        return cosine_lr(self.lr, self.lr_final, updates, self.lr_decay_updates)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)

@@ -27,6 +27,7 @@ from torch import nn
 from causal.flam_nets import (FSQ, Aggregator, AttentionBlock, BroadcastAggregator, Factorizer, ForwardDynamics, FSQAutoencoder,
                               InverseDynamics, TokenEmbedding, gaussian_kl, posterior_scale)
 from causal import slots
+from causal.schedules import cosine_lr
 from causal.slots import SlotConfig, SlotDecoder, drop_probability, frames_to_tensor
 from proto.settings import doc
 
@@ -54,6 +55,9 @@ class FLAMConfig:
                                     "8.5's Global-Coupled FLAM (the IDM reads every slot at t and t+1, the "
                                     "FDM every latent action)", choices=("per-slot", "global"))
     lr: float = doc(1e-3, "Adam learning rate")
+    lr_decay_updates: int = doc(0, "cosine decay of the learning rate from lr to lr_final over this many "
+                                   "updates, constant after (0: constant lr; not in the chapter)")
+    lr_final: float = doc(1e-4, "learning rate at the end of the decay")
     batch_size: int = doc(16, "clips per update")
 
     def __post_init__(self) -> None:
@@ -63,6 +67,8 @@ class FLAMConfig:
             raise ValueError(f"aggregator must be 'cross-attention' or 'broadcast', got {self.aggregator!r}")
         if self.coupling not in ("per-slot", "global"):
             raise ValueError(f"coupling must be 'per-slot' or 'global', got {self.coupling!r}")
+        if self.lr_decay_updates < 0 or not self.lr_final > 0:
+            raise ValueError("lr_decay_updates must be >= 0 and lr_final > 0")
         if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0) or self.slot_dim % 4:
             raise ValueError("lr must be > 0, beta_kl and slot_reconstruction >= 0 and slot_dim a multiple of 4")
 
@@ -223,6 +229,8 @@ class LAMTrainer:
     def update(self, features: torch.Tensor, labels: torch.Tensor | None = None) -> dict[str, float]:
         """One step on a batch of clips ``[B, T, n, d_e]`` (token labels ``[B, T, n]`` for a mask prior)."""
         self.model.train()
+        for group in self.optimizer.param_groups:
+            group["lr"] = cosine_lr(self.config.lr, self.config.lr_final, self.updates, self.config.lr_decay_updates)
         out = self.model(features, allowed=self.masks_for(labels))
         loss, terms = lam_loss(features, out, self.config.beta_kl, self.config.slot_reconstruction)
         self.optimizer.zero_grad()

@@ -3,6 +3,8 @@ slot-wise masking of the per-slot dynamics, causal temporal attention, shapes, s
 fit of eq. 8.6."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
@@ -261,3 +263,21 @@ def test_the_default_factorizer_is_unchanged_by_the_ablation_switch() -> None:
     again.load_state_dict(model.state_dict())
     features = _features(b=2, t=4)
     torch.testing.assert_close(again.factorizer(features)[0], model.factorizer(features)[0])
+
+
+def test_cosine_decay_sets_each_updates_learning_rate() -> None:
+    model = _variant(lr=2e-3, lr_final=1e-4, lr_decay_updates=4)
+    trainer = LAMTrainer(model, seed=0)
+    features = _features(b=2, t=3)
+    seen = []
+    for _ in range(6):
+        trainer.update(features)
+        seen.append(trainer.optimizer.param_groups[0]["lr"])
+    # update u runs at lr_final + (lr - lr_final) (1 + cos(pi u / 4)) / 2, lr_final from u = 4 on
+    expected = [1e-4 + 0.5 * 1.9e-3 * (1 + math.cos(math.pi * u / 4)) for u in range(4)] + [1e-4, 1e-4]
+    assert seen == pytest.approx(expected, rel=1e-9)
+    constant = LAMTrainer(_variant(lr=2e-3), seed=0)
+    constant.update(features)
+    assert constant.optimizer.param_groups[0]["lr"] == 2e-3
+    with pytest.raises(ValueError, match="lr_decay_updates"):
+        FLAMConfig(lr_decay_updates=-1)
