@@ -308,3 +308,87 @@ def record_frames(env: SpritesEnv, seed: int, count: int) -> tuple[np.ndarray, n
             done = terminated or truncated
         frames[t], labels[t] = env.render_state(env._state)
     return frames, labels
+
+
+def expert_action(state: np.ndarray, num_moves: int = 5) -> int:
+    """A scripted expert for the sprite game (Table 8.4's expert; the chapter trains one with PPG):
+    the move whose two-step look-ahead scores best on the true state (float ``[N + 1, 6]``).
+
+    Each move is followed by the best second move, the fish swimming on at their speeds (respawns are
+    not foreseen). A step touching a living fish at least the agent's size scores -100; eating a smaller
+    one +10; otherwise the score is minus the distance to the nearest smaller fish in the frame (where
+    the agent will meet it) and a penalty growing as a larger fish comes within 0.5. Ties go to the
+    lower move index. Deterministic; no generator."""
+    agent, fish = state[0], state[1:][state[1:, ALIVE] > 0.5]
+
+    def fish_at(steps: int) -> np.ndarray:
+        moved = fish.copy()
+        moved[:, X] += moved[:, VX] * steps
+        return moved
+
+    later = (fish_at(1), fish_at(2))
+
+    def score(position: np.ndarray, step: int) -> float:
+        body = agent.copy()
+        body[X], body[Y] = position
+        value = 0.0
+        for other in later[step]:
+            if abs(other[X]) - other[SIZE] * 1.5 > 1.0:
+                continue
+            touching = _touch(body, other)
+            distance = float(np.hypot(body[X] - other[X], (body[Y] - other[Y]) / HEIGHT))
+            if other[SIZE] >= agent[SIZE]:
+                value -= 100.0 if touching else max(0.0, 0.5 - distance) * 4.0
+            elif touching:
+                value += 10.0
+        prey = [o for o in later[step] if o[SIZE] < agent[SIZE] and abs(o[X]) < 1.0]
+        if prey:
+            value -= min(float(np.hypot(body[X] - o[X], body[Y] - o[Y])) for o in prey)
+        return value
+
+    def moved(position: np.ndarray, move: int) -> np.ndarray:
+        return np.clip(position + MOVES9[move] * AGENT_STEP, -1.0, 1.0)
+
+    start = agent[[X, Y]]
+    totals = []
+    for first in range(num_moves):
+        position = moved(start, first)
+        now = score(position, 0)
+        totals.append(now + (0.0 if now <= -100.0 else
+                             0.9 * max(score(moved(position, second), 1) for second in range(num_moves))))
+    return int(np.argmax(totals))
+
+
+def record_demonstrations(env: SpritesEnv, transitions: int, seed: int, epsilon: float = 0.0) -> dict[str, np.ndarray]:
+    """At least ``transitions`` steps of the scripted expert (:func:`expert_action`), taking a uniformly
+    random move instead with probability ``epsilon``; whole episodes, reset with seeds ``seed, seed + 1,
+    ...``, choices from ``numpy.random.default_rng(seed)``.
+
+    ``frames`` uint8 ``[F, H, W, 3]`` and ``labels`` uint8 ``[F, H, W]`` of every frame, episodes one
+    after another (an episode of L steps has L + 1 frames); per transition ``current`` (int64: the
+    index of its first frame; the next frame is ``current + 1``), ``actions`` (int64) and ``episode``
+    (int64); per episode ``returns`` (float64)."""
+    if transitions < 1 or not 0.0 <= epsilon <= 1.0:
+        raise ValueError(f"transitions must be >= 1 and epsilon in [0, 1], got {transitions}, {epsilon}")
+    rng = np.random.default_rng(seed)
+    frames, labels, current, actions, episode_of, returns = [], [], [], [], [], []
+    while len(actions) < transitions:
+        env.reset(seed=seed + len(returns))
+        total, done = 0.0, False
+        while True:
+            frame, label = env.render_state(env._state)
+            frames.append(frame)
+            labels.append(label)
+            if done:
+                break
+            action = int(rng.integers(env.num_moves)) if rng.random() < epsilon else expert_action(env._state, env.num_moves)
+            current.append(len(frames) - 1)
+            actions.append(action)
+            episode_of.append(len(returns))
+            _, reward, terminated, truncated, _ = env.step(action)
+            total += reward
+            done = terminated or truncated
+        returns.append(total)
+    return {"frames": np.stack(frames), "labels": np.stack(labels), "current": np.asarray(current, np.int64),
+            "actions": np.asarray(actions, np.int64), "episode": np.asarray(episode_of, np.int64),
+            "returns": np.asarray(returns, np.float64)}

@@ -11,7 +11,8 @@ from gymnasium.utils.env_checker import check_env
 
 from envs import make_env
 from envs.registry import EnvOptions, check_options, env_entry
-from envs.sprites import ALIVE, COLOR, FIELDS, NUM_FIELDS, SIZE, VX, X, Y, SpritesEnv, record_frames
+from envs.sprites import (ALIVE, AGENT_STEP, COLOR, FIELDS, NUM_FIELDS, SIZE, VX, X, Y, SpritesEnv, expert_action,
+                          record_demonstrations, record_frames)
 
 
 def _run(env: SpritesEnv, seed: int, steps: int) -> list[tuple[np.ndarray, dict]]:
@@ -173,3 +174,58 @@ def test_registry_entry_builds_the_game() -> None:
     made = gym.make("causeway/Sprites-v0", frame_size=64, render_mode="rgb_array")
     made.reset(seed=0)
     assert made.render().shape == (64, 64, 3)
+
+
+def _episode_returns(env: SpritesEnv, act, seeds: range) -> list[float]:
+    returns = []
+    for seed in seeds:
+        env.reset(seed=seed)
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(act(env))
+            total, done = total + reward, terminated or truncated
+        returns.append(total)
+    return returns
+
+
+def test_the_scripted_expert_far_outscores_random_play() -> None:
+    env, rng = SpritesEnv(), np.random.default_rng(0)
+    expert = _episode_returns(env, lambda e: expert_action(e._state, e.num_moves), range(100, 110))
+    random = _episode_returns(env, lambda e: int(rng.integers(e.num_moves)), range(100, 110))
+    assert np.mean(expert) > 5.0 > 1.0 > np.mean(random)
+
+
+def test_the_expert_flees_a_bigger_fish_and_takes_a_smaller_one() -> None:
+    env = SpritesEnv(num_fish=1)
+    env.reset(seed=0)
+    state = env._state.copy()
+    state[0, [X, Y, SIZE]] = (0.0, 0.0, 0.14)
+    # a bigger fish just right of the agent, swimming at it: moving left (3) is the one escape
+    state[1] = (0.40, 0.0, -0.08, 0.25, 1.0, 1.0)
+    assert expert_action(state, 5) == 3
+    # a smaller fish one step above: up (1) eats it
+    state[1] = (0.0, -AGENT_STEP - 0.05, 0.0, 0.08, 1.0, 1.0)
+    assert expert_action(state, 5) == 1
+    # 9 moves: the same escape is still a leftward move
+    state[1] = (0.40, 0.0, -0.08, 0.25, 1.0, 1.0)
+    assert expert_action(state, 9) in (3, 5, 7)
+
+
+def test_demonstrations_are_whole_episodes_of_the_expert() -> None:
+    env = SpritesEnv(num_fish=2)
+    demos = record_demonstrations(env, 50, seed=3)
+    frames, current, actions, episode = demos["frames"], demos["current"], demos["actions"], demos["episode"]
+    assert len(actions) >= 50 and len(current) == len(actions) == len(episode)
+    assert len(frames) == len(demos["labels"]) == len(actions) + len(demos["returns"])
+    assert np.all(np.diff(episode) >= 0) and episode[-1] == len(demos["returns"]) - 1
+    # replaying the first episode from its seed gives the same frames and the expert's actions
+    env.reset(seed=3)
+    for t in np.flatnonzero(episode == 0):
+        assert np.array_equal(frames[current[t]], env.render_state(env._state)[0])
+        assert actions[t] == expert_action(env._state, env.num_moves)
+        env.step(int(actions[t]))
+    assert np.array_equal(frames[current[t] + 1], env.render_state(env._state)[0])
+    noisy = record_demonstrations(env, 300, seed=3, epsilon=1.0)
+    assert len(np.unique(noisy["actions"])) == env.num_moves
+    with pytest.raises(ValueError, match="epsilon"):
+        record_demonstrations(env, 10, seed=0, epsilon=1.5)

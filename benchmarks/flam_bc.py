@@ -1,0 +1,217 @@
+"""FLAM's Table 8.4 analogue on the sprite game: behaviour cloning from pseudo-labels (eq. 8.7).
+
+    python -m benchmarks.flam_bc --seed 0
+
+The chapter's protocol on a bigfish-like game (envs/sprites.py; the chapter uses Procgen's Bigfish
+and Starpilot with a PPG expert and 1M frames): a demonstration dataset of a scripted expert
+(:func:`envs.sprites.expert_action`, a random move with probability ``--epsilon``), of which a small
+subset keeps its action labels (``--labels``, 1k and 10k by default, of ``--transitions``). FLAM is
+trained on the whole dataset's frames without actions (the FSQ autoencoder first, then eq. 8.6 on
+clips, the annealed mask prior of the exact sprite masks as in the MultiGrid tables); an action
+decoder M_a learns latent actions -> actions on the labelled subset and pseudo-labels every transition;
+a policy on one frame is cloned on the pseudo-labels (eq. 8.7). Rows per label size:
+
+- ``flam``: BC on FLAM's pseudo-labels of every transition;
+- ``vanilla``: the same policy network and training on the labelled subset alone;
+- ``idm``: BC on the pseudo-labels of a plain inverse dynamics model (the same decoder network on the
+  frozen features of the frame pair, fitted on the same labels), VPT-style: ours, not the chapter's,
+  to tell what the latent actions add over the frames they come from;
+
+and once: ``all-labels`` (BC on every true label: the ceiling of pseudo-labelling), the expert, the
+demonstrator (the expert with its random moves) and a uniformly random policy. Returns are means over
+``--eval-episodes`` episodes on unseen seeds, actions sampled from the policy. One torch thread.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from causal.flam import FLAM, FLAMConfig, LAMTrainer, fit_autoencoder
+from causal.flam_bc import ActionDecoder, ClassifierTraining, FramePolicy, evaluate_policy, fit_classifier, pseudo_labels
+from causal.flam_nets import FSQAutoencoder
+from causal.slots import frames_to_tensor
+from envs.sprites import SpritesEnv, expert_action, record_demonstrations
+
+EVAL_SEED = 1_000_000
+"""Evaluation episodes reset with seeds from here (demonstrations use ``seed * 100_000`` onwards)."""
+
+
+@dataclass(frozen=True)
+class Args:
+    seed: int
+    transitions: int
+    labels: tuple[int, ...]
+    epsilon: float
+    num_fish: int
+    ae_updates: int
+    updates: int
+    clip: int
+    slot_dim: int
+    action_dim: int
+    beta_kl: float
+    lr: float
+    decoder_updates: int
+    bc_updates: int
+    eval_episodes: int
+    out: str
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--transitions", type=int, default=30_000, help="demonstration transitions (whole episodes)")
+    p.add_argument("--labels", type=int, nargs="+", default=[1000, 10_000], help="labelled subset sizes")
+    p.add_argument("--epsilon", type=float, default=0.1, help="the demonstrator's share of random moves")
+    p.add_argument("--num-fish", type=int, default=4)
+    p.add_argument("--ae-updates", type=int, default=300, help="FSQ autoencoder updates (eq. 8.1)")
+    p.add_argument("--updates", type=int, default=2000, help="FLAM updates (eq. 8.6)")
+    p.add_argument("--clip", type=int, default=4, help="frames per FLAM training clip")
+    p.add_argument("--slot-dim", type=int, default=32)
+    p.add_argument("--action-dim", type=int, default=8, help="d_a per slot")
+    p.add_argument("--beta-kl", type=float, default=1e-3)
+    p.add_argument("--lr", type=float, default=2e-3, help="FLAM's learning rate")
+    p.add_argument("--decoder-updates", type=int, default=2000, help="updates of M_a and of the IDM baseline")
+    p.add_argument("--bc-updates", type=int, default=3000, help="updates of every BC policy")
+    p.add_argument("--eval-episodes", type=int, default=50)
+    p.add_argument("--out", default="", help="write the results as JSON here")
+    args = vars(p.parse_args(argv))
+    parsed = Args(**{**args, "labels": tuple(args["labels"])})
+    if parsed.transitions < 2 or not all(0 < n <= parsed.transitions for n in parsed.labels):
+        p.error(f"--labels must lie in 1..--transitions ({parsed.transitions}), got {list(parsed.labels)}")
+    if not 0.0 <= parsed.epsilon <= 1.0 or parsed.clip < 2 or parsed.eval_episodes < 1:
+        p.error("--epsilon must be in [0, 1], --clip >= 2 and --eval-episodes >= 1")
+    return parsed
+
+
+def token_labels(labels: np.ndarray, stride: int = 4) -> torch.Tensor:
+    """Each ``stride`` x ``stride`` feature token's segment ``[..., n]`` from pixel labels ``[..., H, W]``:
+    the object with the most pixels in it, the background only where no object shows (the sprites are
+    small: a token's corner pixel would miss most of them)."""
+    pixels = torch.from_numpy(labels).long()
+    h, w = pixels.shape[-2:]
+    blocks = pixels.reshape(*pixels.shape[:-2], h // stride, stride, w // stride, stride).transpose(-3, -2)
+    counts = torch.nn.functional.one_hot(blocks.flatten(-2), int(pixels.max()) + 1).sum(-2).float()
+    counts[..., 0] *= 1e-3
+    return counts.argmax(-1).flatten(-2)
+
+
+def clip_starts(episode_of_frame: np.ndarray, clip: int) -> torch.Tensor:
+    """Frame indices where ``clip`` consecutive frames lie in one episode."""
+    same = episode_of_frame[:len(episode_of_frame) - clip + 1] == episode_of_frame[clip - 1:]
+    return torch.from_numpy(np.flatnonzero(same))
+
+
+def train_flam(model: FLAM, features: torch.Tensor, labels: torch.Tensor, starts: torch.Tensor, args: Args) -> float:
+    """Eq. 8.6 on random clips of ``args.clip`` frames within episodes, with the annealed mask prior; seconds."""
+    trainer, start = LAMTrainer(model, seed=args.seed, mask_prior="annealed", total_updates=args.updates), time.time()
+    generator = torch.Generator().manual_seed(args.seed)
+    offsets = torch.arange(args.clip)
+    for update in range(args.updates):
+        frames = starts[torch.randint(len(starts), (model.config.batch_size,), generator=generator)][:, None] + offsets
+        terms = trainer.update(features[frames], labels[frames])
+        if update % 250 == 0 or update == args.updates - 1:
+            print(f"  flam update {update}: {json.dumps({k: round(v, 4) for k, v in terms.items()})}", flush=True)
+    return time.time() - start
+
+
+@torch.no_grad()
+def latent_actions(model: FLAM, features: torch.Tensor, current: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
+    """Posterior means of every transition's latent actions ``[N, K * d_a]`` from its frame pair."""
+    model.eval()
+    pairs = [model.infer(features[torch.stack([c, c + 1], 1)]) for c in current.split(chunk)]
+    return torch.cat(pairs).flatten(1)
+
+
+def labelled_subsets(transitions: int, sizes: tuple[int, ...], seed: int) -> dict[int, torch.Tensor]:
+    """Nested random subsets: the first ``n`` of one seeded permutation of the transitions, per size."""
+    order = torch.randperm(transitions, generator=torch.Generator().manual_seed(seed + 7))
+    return {n: order[:n] for n in sizes}
+
+
+def main(args: Args) -> dict:
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    make_env = lambda: SpritesEnv(num_fish=args.num_fish)  # noqa: E731
+    env = make_env()
+    start = time.time()
+    demos = record_demonstrations(env, args.transitions, seed=args.seed * 100_000, epsilon=args.epsilon)
+    frames = torch.from_numpy(demos["frames"])
+    current, actions = torch.from_numpy(demos["current"]), torch.from_numpy(demos["actions"])
+    episode_of_frame = np.repeat(np.arange(len(demos["returns"])), np.bincount(demos["episode"]) + 1)
+    print(f"demonstrations: {len(actions)} transitions, {len(demos['returns'])} episodes, mean return "
+          f"{demos['returns'].mean():.2f} ({time.time() - start:.0f} s)", flush=True)
+    results: dict = {"demonstrations": {"transitions": len(actions), "episodes": len(demos["returns"]),
+                                        "return_mean": float(demos["returns"].mean()),
+                                        "majority_action_share": float(np.bincount(demos["actions"]).max() / len(actions))}}
+
+    config = FLAMConfig(num_slots=args.num_fish + 2, slot_dim=args.slot_dim, action_dim=args.action_dim,
+                        beta_kl=args.beta_kl, lr=args.lr, aggregator="broadcast")
+    autoencoder = FSQAutoencoder(config.levels)
+    start = time.time()
+    fit_autoencoder(autoencoder, frames, args.ae_updates, seed=args.seed)
+    with torch.no_grad():
+        features = torch.cat([autoencoder.encode(frames_to_tensor(chunk)) for chunk in frames.split(4096)])
+    print(f"autoencoder: {time.time() - start:.0f} s", flush=True)
+    model = FLAM(replace(config), features.shape[1])
+    seconds = train_flam(model, features, token_labels(demos["labels"]), clip_starts(episode_of_frame, args.clip), args)
+    alphas = latent_actions(model, features, current)
+    pairs = torch.cat([features[current], features[current + 1]], 1).flatten(1)
+    results["flam_train_seconds"] = round(seconds, 1)
+
+    decoding = ClassifierTraining(updates=args.decoder_updates, batch_size=256)
+    cloning = ClassifierTraining(updates=args.bc_updates)
+    observations = frames[current]
+
+    def clone(targets: torch.Tensor, rows: torch.Tensor | None = None) -> dict[str, float]:
+        torch.manual_seed(args.seed)
+        policy = FramePolicy(env.num_moves, env.frame_size)
+        inputs = observations if rows is None else observations[rows]
+        fit_classifier(policy, inputs, targets if rows is None else targets[rows], cloning, seed=args.seed)
+        return evaluate_policy(policy, make_env, args.eval_episodes, EVAL_SEED)
+
+    for n, rows in labelled_subsets(len(actions), args.labels, args.seed).items():
+        row: dict = {"vanilla": clone(actions, rows)}
+        for name, inputs in (("flam", alphas), ("idm", pairs)):
+            torch.manual_seed(args.seed)
+            labels, accuracy = pseudo_labels(ActionDecoder(inputs.shape[1], env.num_moves), inputs, rows, actions,
+                                             decoding, seed=args.seed)
+            row[name] = {**clone(labels), "pseudo_label_accuracy": accuracy}
+        results[f"labels_{n}"] = row
+        print(f"{n} labels: {json.dumps(row)}", flush=True)
+    results["all_labels"] = clone(actions)
+    rng = np.random.default_rng(args.seed)
+    results["expert"] = evaluate_policy(None, make_env, args.eval_episodes, EVAL_SEED,
+                                        act=lambda e: expert_action(e._state, e.num_moves))
+    results["demonstrator"] = evaluate_policy(
+        None, make_env, args.eval_episodes, EVAL_SEED,
+        act=lambda e: rng.integers(e.num_moves) if rng.random() < args.epsilon else expert_action(e._state, e.num_moves))
+    results["random"] = evaluate_policy(None, make_env, args.eval_episodes, EVAL_SEED,
+                                        act=lambda e: rng.integers(e.num_moves))
+    print_table(results, args)
+    if args.out:
+        Path(args.out).write_text(json.dumps({"args": vars(args), "results": results}, indent=2))
+    return results
+
+
+def print_table(results: dict, args: Args) -> None:
+    print(f"\nTable 8.4 analogue (sprite game, seed {args.seed}): mean episodic return over {args.eval_episodes} "
+          "unseen episodes")
+    print(f"{'labels':>8} {'FLAM':>8} {'vanilla':>8} {'IDM':>8}  pseudo-label accuracy FLAM / IDM (the most "
+          f"common action's share: {results['demonstrations']['majority_action_share']:.3f})")
+    for n in args.labels:
+        row = results[f"labels_{n}"]
+        print(f"{n:>8} {row['flam']['return_mean']:8.2f} {row['vanilla']['return_mean']:8.2f} "
+              f"{row['idm']['return_mean']:8.2f}  {row['flam']['pseudo_label_accuracy']:.3f} / "
+              f"{row['idm']['pseudo_label_accuracy']:.3f}")
+    for name in ("all_labels", "expert", "demonstrator", "random"):
+        print(f"{name:>12}: {results[name]['return_mean']:.2f}")
+
+
+if __name__ == "__main__":
+    main(parse_args())
