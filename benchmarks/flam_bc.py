@@ -19,7 +19,9 @@ a policy on one frame is cloned on the pseudo-labels (eq. 8.7). Rows per label s
 
 and once: ``all-labels`` (BC on every true label: the ceiling of pseudo-labelling), the expert, the
 demonstrator (the expert with its random moves) and a uniformly random policy. Returns are means over
-``--eval-episodes`` episodes on unseen seeds, actions sampled from the policy. One torch thread.
+``--eval-episodes`` episodes on unseen seeds, actions sampled from the policy; each cloned policy's
+``heldout_action_accuracy`` is the share of the demonstrator's actions it predicts (most likely
+action) on ``--heldout-transitions`` demonstrations of unseen seeds. One torch thread.
 """
 from __future__ import annotations
 
@@ -33,7 +35,8 @@ import numpy as np
 import torch
 
 from causal.flam import FLAM, FLAMConfig, LAMTrainer, fit_autoencoder
-from causal.flam_bc import ActionDecoder, ClassifierTraining, FramePolicy, evaluate_policy, fit_classifier, pseudo_labels
+from causal.flam_bc import (ActionDecoder, ClassifierTraining, FramePolicy, evaluate_policy, fit_classifier, predict,
+                            pseudo_labels)
 from causal.flam_nets import FSQAutoencoder
 from causal.slots import frames_to_tensor
 from envs.sprites import SpritesEnv, expert_action, record_demonstrations
@@ -59,6 +62,7 @@ class Args:
     decoder_updates: int
     bc_updates: int
     eval_episodes: int
+    heldout_transitions: int
     out: str
 
 
@@ -79,13 +83,15 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--decoder-updates", type=int, default=2000, help="updates of M_a and of the IDM baseline")
     p.add_argument("--bc-updates", type=int, default=3000, help="updates of every BC policy")
     p.add_argument("--eval-episodes", type=int, default=50)
+    p.add_argument("--heldout-transitions", type=int, default=3000,
+                   help="demonstrations of unseen seeds on which each policy's actions are scored against the demonstrator's")
     p.add_argument("--out", default="", help="write the results as JSON here")
     args = vars(p.parse_args(argv))
     parsed = Args(**{**args, "labels": tuple(args["labels"])})
     if parsed.transitions < 2 or not all(0 < n <= parsed.transitions for n in parsed.labels):
         p.error(f"--labels must lie in 1..--transitions ({parsed.transitions}), got {list(parsed.labels)}")
-    if not 0.0 <= parsed.epsilon <= 1.0 or parsed.clip < 2 or parsed.eval_episodes < 1:
-        p.error("--epsilon must be in [0, 1], --clip >= 2 and --eval-episodes >= 1")
+    if not 0.0 <= parsed.epsilon <= 1.0 or parsed.clip < 2 or min(parsed.eval_episodes, parsed.heldout_transitions) < 1:
+        p.error("--epsilon must be in [0, 1], --clip >= 2, --eval-episodes and --heldout-transitions >= 1")
     return parsed
 
 
@@ -167,13 +173,18 @@ def main(args: Args) -> dict:
     decoding = ClassifierTraining(updates=args.decoder_updates, batch_size=256)
     cloning = ClassifierTraining(updates=args.bc_updates)
     observations = frames[current]
+    heldout = record_demonstrations(env, args.heldout_transitions, seed=args.seed * 100_000 + 50_000,
+                                    epsilon=args.epsilon)
+    heldout_frames = torch.from_numpy(heldout["frames"][heldout["current"]])
+    heldout_actions = torch.from_numpy(heldout["actions"])
 
     def clone(targets: torch.Tensor, rows: torch.Tensor | None = None) -> dict[str, float]:
         torch.manual_seed(args.seed)
         policy = FramePolicy(env.num_moves, env.frame_size)
         inputs = observations if rows is None else observations[rows]
         fit_classifier(policy, inputs, targets if rows is None else targets[rows], cloning, seed=args.seed)
-        return evaluate_policy(policy, make_env, args.eval_episodes, EVAL_SEED)
+        accuracy = float((predict(policy, heldout_frames) == heldout_actions).float().mean())
+        return {**evaluate_policy(policy, make_env, args.eval_episodes, EVAL_SEED), "heldout_action_accuracy": accuracy}
 
     for n, rows in labelled_subsets(len(actions), args.labels, args.seed).items():
         row: dict = {"vanilla": clone(actions, rows)}
@@ -209,6 +220,9 @@ def print_table(results: dict, args: Args) -> None:
         print(f"{n:>8} {row['flam']['return_mean']:8.2f} {row['vanilla']['return_mean']:8.2f} "
               f"{row['idm']['return_mean']:8.2f}  {row['flam']['pseudo_label_accuracy']:.3f} / "
               f"{row['idm']['pseudo_label_accuracy']:.3f}")
+    print("held-out action accuracy of the cloned policies (FLAM / vanilla / IDM): " + ", ".join(
+        f"{n}: " + " / ".join(f"{results[f'labels_{n}'][k]['heldout_action_accuracy']:.3f}" for k in ("flam", "vanilla", "idm"))
+        for n in args.labels) + f", all labels: {results['all_labels']['heldout_action_accuracy']:.3f}")
     for name in ("all_labels", "expert", "demonstrator", "random"):
         print(f"{name:>12}: {results[name]['return_mean']:.2f}")
 

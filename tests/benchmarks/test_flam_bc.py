@@ -18,7 +18,7 @@ def test_flam_bc_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     out = tmp_path / "bc.json"
     main(parse_args(["--transitions", "120", "--labels", "10", "60", "--num-fish", "2", "--ae-updates", "1",
                      "--updates", "2", "--slot-dim", "16", "--decoder-updates", "3", "--bc-updates", "3",
-                     "--eval-episodes", "1", "--out", str(out)]))
+                     "--eval-episodes", "1", "--heldout-transitions", "20", "--out", str(out)]))
     results = json.loads(out.read_text())["results"]
     assert set(results) == {"demonstrations", "flam_train_seconds", "labels_10", "labels_60", "all_labels",
                             "expert", "demonstrator", "random"}
@@ -27,6 +27,8 @@ def test_flam_bc_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
         assert set(results[f"labels_{n}"]) == {"vanilla", "flam", "idm"}
         for name in ("flam", "idm"):
             assert 0.0 <= results[f"labels_{n}"][name]["pseudo_label_accuracy"] <= 1.0
+        for name in ("flam", "idm", "vanilla"):
+            assert 0.0 <= results[f"labels_{n}"][name]["heldout_action_accuracy"] <= 1.0
     assert results["expert"]["return_mean"] >= 0.0 and results["random"]["episodes"] == 1
     assert "Table 8.4 analogue" in capsys.readouterr().out
 
