@@ -106,6 +106,8 @@ def parse_args(argv: list[str] | None = None) -> Args:
                    help="two-stage: updates of its first stage (slots by reconstruction, with --mask-prior)")
     p.add_argument("--out", default="", help="write the results as JSON here")
     args = vars(p.parse_args(argv))
+    if args["num_slots"] == 1 or args["num_slots"] < 0:
+        p.error(f"--num-slots must be 0 (agents + 1) or >= 2 (the background's slot and at least one more), got {args['num_slots']}")
     return Args(**{**args, "models": tuple(args["models"])})
 
 
@@ -217,9 +219,17 @@ def random_codes(actions: torch.Tensor, positions: torch.Tensor, config: FLAMCon
             **dci_keys(position_dci(states, frames, grid_size), "_positions")}
 
 
-def token_labels(labels: np.ndarray) -> torch.Tensor:
-    """Each feature token's segment ``[E, T, n]`` (0 background, ``1 + i`` agent ``i``; one 4x4 token per cell)."""
-    return torch.from_numpy(labels[:, :, ::4, ::4].reshape(labels.shape[0], labels.shape[1], -1).copy())
+def token_labels(labels: np.ndarray, num_slots: int = 0, num_agents: int = 0) -> torch.Tensor:
+    """Each feature token's segment ``[E, T, n]`` (0 background, ``1 + i`` agent ``i``; one 4x4 token per
+    cell), the segment the mask prior points slot ``k`` at. With fewer agent slots than agents
+    (``num_slots - 1 < num_agents``: Table 8.3's K = 2) agents share slots in index order: agent ``i``
+    to slot ``1 + i * (num_slots - 1) // num_agents`` (K = 2 + 1 of 4 agents: 0 and 1 in slot 1, 2 and
+    3 in slot 2). Not for the correlated variant: there this grouping is the true one."""
+    tokens = torch.from_numpy(labels[:, :, ::4, ::4].reshape(labels.shape[0], labels.shape[1], -1).copy())
+    if 0 < num_slots - 1 < num_agents:
+        agent = tokens.long() - 1
+        tokens = torch.where(tokens > 0, 1 + agent * (num_slots - 1) // num_agents, 0).to(tokens.dtype)
+    return tokens
 
 
 def agent_slots(attention: torch.Tensor, labels: torch.Tensor, num_agents: int) -> torch.Tensor:
@@ -277,7 +287,7 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     print(f"copy-last-frame prediction_sse on the training videos: {float(copy):.4f}", flush=True)
     actions, positions = torch.from_numpy(test["actions"]), torch.from_numpy(test["positions"])
     models = {"flam": FLAM, "monolithic": MonolithicLAM, "two-stage": FLAM}
-    labels = token_labels(train["labels"])
+    labels = token_labels(train["labels"], num_slots, env.num_agents)
     for name in ("flam",) if env.correlated else args.models:
         torch.manual_seed(args.seed)
         if name == "two-stage":  # the slot decoder of its first stage; eq. 8.6 alone in its second

@@ -5,10 +5,12 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from benchmarks.flam_table import agent_slot_share, agent_slots, per_agent, main, parse_args, slot_sharing, train_lam, train_two_stage
+from benchmarks.flam_table import (agent_slot_share, agent_slots, per_agent, main, parse_args, slot_sharing, token_labels, train_lam,
+                                   train_two_stage)
 from causal.flam import FLAM, FLAMConfig
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -75,3 +77,21 @@ def test_per_agent_picks_each_agents_slot_per_frame() -> None:
     values = torch.arange(2 * 3 * 2, dtype=torch.float32).view(1, 2, 3, 2)  # frame t, slot k: [6t + 2k, 6t + 2k + 1]
     slots = torch.tensor([[[2, 0], [1, 1]]])  # frame 0: agents in slots 2 and 0; frame 1: both in slot 1
     assert per_agent(values, slots).tolist() == [[[4.0, 5.0], [0.0, 1.0]], [[8.0, 9.0], [8.0, 9.0]]]
+
+
+def test_token_labels_group_agents_in_index_order_when_slots_are_fewer() -> None:
+    labels = np.zeros((1, 1, 8, 32), np.uint8)
+    for i in range(4):  # agent i on token i of the first row
+        labels[0, 0, 0:4, 4 * i:4 * i + 4] = 1 + i
+    assert token_labels(labels)[0, 0, :5].tolist() == [1, 2, 3, 4, 0]
+    assert token_labels(labels, num_slots=5, num_agents=4)[0, 0, :5].tolist() == [1, 2, 3, 4, 0]
+    assert token_labels(labels, num_slots=9, num_agents=4)[0, 0, :5].tolist() == [1, 2, 3, 4, 0]
+    # K = 2 agent slots: agents 0, 1 -> slot 1 and 2, 3 -> slot 2; K = 1: every agent in slot 1
+    assert token_labels(labels, num_slots=3, num_agents=4)[0, 0, :5].tolist() == [1, 1, 2, 2, 0]
+    assert token_labels(labels, num_slots=2, num_agents=4)[0, 0, :5].tolist() == [1, 1, 1, 1, 0]
+
+
+def test_one_slot_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse_args(["--num-slots", "1"])
+    assert "--num-slots must be 0" in capsys.readouterr().err
