@@ -90,6 +90,9 @@ def parse_args(argv: list[str] | None = None) -> Args:
     parsed = Args(**{**args, "labels": tuple(args["labels"])})
     if parsed.transitions < 2 or not all(0 < n <= parsed.transitions for n in parsed.labels):
         p.error(f"--labels must lie in 1..--transitions ({parsed.transitions}), got {list(parsed.labels)}")
+    if not 0 <= parsed.seed < EVAL_SEED // 100_000:
+        p.error(f"--seed must be in 0..{EVAL_SEED // 100_000 - 1}: demonstrations reset with seeds from seed * 100,000, "
+                f"evaluation from {EVAL_SEED:,}")
     if not 0.0 <= parsed.epsilon <= 1.0 or parsed.clip < 2 or min(parsed.eval_episodes, parsed.heldout_transitions) < 1:
         p.error("--epsilon must be in [0, 1], --clip >= 2, --eval-episodes and --heldout-transitions >= 1")
     return parsed

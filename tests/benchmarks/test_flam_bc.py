@@ -54,3 +54,6 @@ def test_bad_arguments_are_refused_before_anything_runs(capsys: pytest.CaptureFi
     assert "--labels must lie in 1..--transitions" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         parse_args(["--epsilon", "2"])
+    with pytest.raises(SystemExit):
+        parse_args(["--seed", "10"])
+    assert "--seed must be in 0..9" in capsys.readouterr().err
