@@ -103,11 +103,10 @@ def token_labels(labels: np.ndarray, stride: int = 4) -> torch.Tensor:
     the object with the most pixels in it, the background only where no object shows (the sprites are
     small: a token's corner pixel would miss most of them)."""
     pixels = torch.from_numpy(labels).long()
-    h, w = pixels.shape[-2:]
-    blocks = pixels.reshape(*pixels.shape[:-2], h // stride, stride, w // stride, stride).transpose(-3, -2)
-    counts = torch.nn.functional.one_hot(blocks.flatten(-2), int(pixels.max()) + 1).sum(-2).float()
-    counts[..., 0] *= 1e-3
-    return counts.argmax(-1).flatten(-2)
+    onehot = torch.nn.functional.one_hot(pixels.flatten(0, -3), int(pixels.max()) + 1).permute(0, 3, 1, 2).float()
+    shares = torch.nn.functional.avg_pool2d(onehot, stride)  # each segment's share of each token, as slots.token_masks
+    shares[:, 0] *= 1e-3
+    return shares.argmax(1).flatten(1).view(*pixels.shape[:-2], -1)
 
 
 def clip_starts(episode_of_frame: np.ndarray, clip: int) -> torch.Tensor:
