@@ -1,9 +1,9 @@
-"""Table 4.1 and Figs. 4.5-4.6 on Chemical with distractors or the block scene: implicit vs explicit CBM
-from the same data.
+"""Table 4.1 and Figs. 4.5-4.6 on Chemical with distractors, the block scene or the tool-use scene:
+implicit vs explicit CBM from the same data.
 
-For each seed: random-policy transitions of ``chemical-distractors`` or ``block`` (``--env``; on block
-every other episode starts with a scripted grasp of ``mov1``, so that contacts occur; 10% of episodes
-held out), then
+For each seed: random-policy transitions of ``chemical-distractors``, ``block`` or ``tool-use``
+(``--env``; on block every other episode starts with a scripted grasp of ``mov1``, on tool-use with
+part of the scripted Series solution, so that contacts occur; 10% of episodes held out), then
 CBM with implicit dynamics and CBM with explicit (CDL's) dynamics trained on the same data for the same
 number of updates. As the graph-evaluator does live, the dynamics CMI (eq. 4.3 / eq. 3.2) and the
 reward CMI are estimated on the held-out data every ``--estimate-every`` updates and averaged over
@@ -32,6 +32,7 @@ dynamics graph, and, from the same trained model, the parents the per-mask-varia
 
     python -m benchmarks.cbm_graph_table --num-objects 3 --distractors 5,5 --updates 5000 --seeds 0 1 2
     python -m benchmarks.cbm_graph_table --env block --task pick --distractors 20,20 --steps 5000 --updates 1000
+    python -m benchmarks.cbm_graph_table --env tool-use --task series --distractors 20,20 --steps 5000 --updates 1000
     python -m benchmarks.cbm_graph_table --num-objects 3 --distractors 5,5 --task match-first --reward-only --seeds 0 1 2
 """
 from __future__ import annotations
@@ -60,19 +61,32 @@ from proto.messages import EnvSpec
 
 class CollectionPolicy:
     """Uniformly random actions; on ``block``, every other episode opens with a scripted grasp of
-    ``mov1`` (random actions would rarely touch a cube)."""
+    ``mov1``, on ``tool-use`` with the scripted Series solution (:class:`envs.tool_use.SeriesScript`)
+    cut off after a uniformly random 10-160 steps (random actions would rarely touch a cube, and never
+    use the tool)."""
 
     def __init__(self, env: Any, env_name: str, seed: int) -> None:
-        self.env, self.grasps = env, env_name == "block"
-        self.rng, self.skill, self.episode = np.random.default_rng(seed), None, 0
+        self.env, self.env_name = env, env_name
+        self.rng, self.skill, self.episode, self.budget = np.random.default_rng(seed), None, 0, 0
 
     def start_episode(self) -> None:
+        from envs.manipulation_layout import BLOCK
         from envs.skills import grasp
+        from envs.tool_use import SeriesScript
 
-        self.skill = grasp("mov") if self.grasps and self.episode % 2 == 0 else None  # mov1 has mov's indices
+        scripted = self.episode % 2 == 0
         self.episode += 1
+        self.skill, self.budget = None, int(self.rng.integers(10, 161))
+        if scripted and self.env_name == "block":
+            self.skill = grasp("mov1", layout=BLOCK)
+        elif scripted and self.env_name == "tool-use":
+            self.skill = SeriesScript()
 
     def act(self, obs: np.ndarray) -> np.ndarray | int:
+        if self.skill is not None and self.env_name == "tool-use":
+            self.budget -= 1
+            if self.budget < 0:
+                self.skill = None
         action = None if self.skill is None else self.skill.act(obs)
         if action is not None:
             return action
@@ -339,12 +353,12 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block"))
+    p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block", "tool-use"))
     p.add_argument("--num-objects", type=int, default=3)
     p.add_argument("--graph", default="full")
     p.add_argument("--distractors", default="5,5")
     p.add_argument("--task", default="match", help="chemical-distractors: match (every object) or match-first "
-                                                    "(object 0 only); block: pick or stack")
+                                                    "(object 0 only); block: pick or stack; tool-use: series")
     p.add_argument("--episode-length", type=int, default=0, help="steps per episode (0: the env's default)")
     p.add_argument("--steps", type=int, default=20_000, help="random-policy transitions per seed")
     p.add_argument("--updates", type=int, default=5_000)

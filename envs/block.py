@@ -60,11 +60,12 @@ class BlockEnv(ManipulationEnv):
 
     LAYOUT = BLOCK
     ENV_ID = "block"
+    TASKS = TASKS
 
     def __init__(self, *, task: str = "pick", distractors: str = "20,20", distractor_seed: int = 0,
                  distractor_ood: tuple[float, float] | None = None, **kwargs: Any) -> None:
-        if task not in TASKS:
-            raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+        if task not in self.TASKS:
+            raise ValueError(f"task must be one of {self.TASKS}, got {task!r}")
         controllable, uncontrollable = parse_distractors(distractors)
         self.task, self.distractor_seed = task, distractor_seed
         self.distractors = Distractors(controllable, uncontrollable, "continuous", 4, distractor_seed,
@@ -87,6 +88,10 @@ class BlockEnv(ManipulationEnv):
         ``eef`` and ``mov1`` (``pick``), and ``grp`` and ``unm`` too (``stack``) at t+1."""
         return task_reward_parents(self.task, self._global_graph)
 
+    def task_reward(self, scene_obs: np.ndarray) -> tuple[float, bool]:
+        """Reward and success of the task in the state ``scene_obs`` (the scene's factors)."""
+        return task_reward(self.task, scene_obs)
+
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """The scene's reset, controllable distractors at 0, uncontrollable ones drawn."""
@@ -100,7 +105,7 @@ class BlockEnv(ManipulationEnv):
         scene_obs, _, _, truncated, info = super().step(a)
         self._values = self.distractors.step(a, self.np_random)
         obs = self._with_distractors(scene_obs)
-        reward, success = task_reward(self.task, scene_obs)
+        reward, success = self.task_reward(scene_obs)
         info["local_graph"] = self.distractors.extend_graph(info["local_graph"])
         info["success"] = success
         return obs, reward, success, truncated, info

@@ -159,18 +159,22 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
     def intervene(self, values: Mapping[str, float]) -> np.ndarray:
         """Set factors by name (``{"mk1.x": 0.1, "unm.y": -0.05}``) and give the new observation.
 
-        Cube and marker coordinates and ``grp.*`` can be set; ``eef.*`` cannot (it is the arm's
+        Cube, tool (``tool.yaw`` too) and marker coordinates and ``grp.*`` can be set; ``eef.*`` cannot (it is the arm's
         forward kinematics: move it with actions). Everything not named keeps its exact state (a
         set movable cube is also put at rest). A cube set into another body is pushed out by the
         simulator on the next step.
         """
         scene, lay = self.scene, self.layout
         grp, movable, kinematic = scene.gripper_qpos(), scene.movable_pos(), scene.kinematic_pos()
-        touched = set()
+        touched, yaws = set(), {}
         for name, value in values.items():
             if name not in lay.factor_names or name.startswith("eef."):
                 raise KeyError(f"cannot intervene on {name!r}; settable: {lay.factor_names[3:]}")
             obj, dim = name.split(".")
+            if dim == "yaw":
+                yaws[obj] = float(value)
+                touched.add(obj)
+                continue
             if obj == "grp":
                 row = grp
             elif obj in lay.movable:
@@ -183,7 +187,8 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
             scene.sim.data.qpos[scene.gripper_qpos_addr] = grp
         for k, obj in enumerate(lay.movable):
             if obj in touched:
-                scene.set_mov_pose(movable[k], scene.mov_quat(k), k)
+                quat = yaw_quat(yaws[obj]) if obj in yaws else scene.mov_quat(k)
+                scene.set_mov_pose(movable[k], quat, k)
         scene.set_kinematic_pose(kinematic)
         scene.commit_poses()
         return self._observation()
@@ -244,14 +249,22 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _observation(self) -> np.ndarray:
         s = self.scene
-        parts = (s.eef_pos(), s.gripper_qpos(), s.movable_pos().ravel(), s.kinematic_pos().ravel())
+        movable = [np.r_[s.mov_pos(k), [s.mov_yaw(k)] if name in self.layout.oriented else []]
+                   for k, name in enumerate(self.layout.movable)]
+        parts = (s.eef_pos(), s.gripper_qpos(), *movable, s.kinematic_pos().ravel())
         return np.concatenate(parts).astype(np.float32)
 
 
+def yaw_quat(yaw: float) -> np.ndarray:
+    """The (w, x, y, z) quaternion of a rotation by ``yaw`` radians about the vertical."""
+    return np.array([np.cos(yaw / 2.0), 0.0, 0.0, np.sin(yaw / 2.0)])
+
+
 def _normalisation(layout: SceneLayout) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    centre = {"x": TABLE_TOP[0], "y": TABLE_TOP[1], "z": TABLE_TOP[2] + 0.05, "0": 0.02, "1": -0.02}
+    centre = {"x": TABLE_TOP[0], "y": TABLE_TOP[1], "z": TABLE_TOP[2] + 0.05, "0": 0.02, "1": -0.02, "yaw": 0.0}
+    scale = {"0": 0.02, "1": 0.02, "yaw": 1.0}
     dims = [name.split(".")[1] for name in layout.factor_names]
-    return tuple(float(centre[d]) for d in dims), tuple(0.02 if d in "01" else 0.1 for d in dims)
+    return tuple(float(centre[d]) for d in dims), tuple(scale.get(d, 0.1) for d in dims)
 
 
 def _check_config(

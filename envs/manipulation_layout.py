@@ -63,6 +63,16 @@ class SceneLayout:
     kinematic: tuple[str, ...]
     markers: tuple[str, ...]
     still: tuple[str, ...] = ("unm",)
+    oriented: tuple[str, ...] = ()
+    """Movable bodies whose yaw (radians about the vertical, in (-pi, pi]) is a factor after ``x, y, z``:
+    the L-shaped tool, whose reach depends on how it is turned."""
+    shapes: tuple[tuple[str, str], ...] = ()
+    """``(body, shape)`` for bodies that are not plain cubes: ``"l-tool"`` (:data:`TOOL_HANDLE_HALF`,
+    :data:`TOOL_HOOK_HALF`) or ``"open-box"`` (:data:`BOX_INNER_HALF`, :data:`BOX_WALL`)."""
+
+    def shape(self, obj: str) -> str:
+        """``"cube"``, ``"l-tool"`` or ``"open-box"``."""
+        return dict(self.shapes).get(obj, "cube")
 
     @property
     def objects(self) -> tuple[str, ...]:
@@ -74,7 +84,9 @@ class SceneLayout:
         return self.kinematic + self.markers
 
     def dims(self, obj: str) -> tuple[str, ...]:
-        return OBJECT_DIMS["grp"] if obj == "grp" else ("x", "y", "z")
+        if obj == "grp":
+            return OBJECT_DIMS["grp"]
+        return ("x", "y", "z", "yaw") if obj in self.oriented else ("x", "y", "z")
 
     @property
     def factor_names(self) -> tuple[str, ...]:
@@ -110,3 +122,19 @@ BLOCK = SceneLayout(movable=("mov1", "mov2", "mov3"), kinematic=("unm",), marker
 """Chapter 4's block scene (Fig. 4.7 left): three movable cubes and one fixed to the table."""
 assert MANIPULATION.factor_names == FACTOR_NAMES and MANIPULATION.constant_factors == CONSTANT_FACTORS
 assert MANIPULATION.contact_groups == CONTACT_GROUPS
+
+TOOL_HANDLE_HALF = (0.13, 0.012, 0.012)
+"""Half-sizes (m) of the L-shaped tool's handle, along the tool's own x axis."""
+TOOL_HOOK_HALF = (0.012, 0.055, 0.012)
+"""Half-sizes (m) of the tool's hook, across the far end of the handle towards the tool's -y."""
+TOOL_HOOK_CENTRE = (TOOL_HANDLE_HALF[0] - TOOL_HOOK_HALF[0], -(TOOL_HOOK_HALF[1] - TOOL_HANDLE_HALF[1]))
+"""The hook's centre in the tool's frame (the handle's centre is the tool's origin)."""
+TOOL_GRIP = (-0.08, 0.0)
+"""Where on the handle (tool frame) the scripted skills and the Series reward grasp the tool."""
+BOX_INNER_HALF, BOX_WALL, BOX_HEIGHT = 0.05, 0.005, 0.03
+"""The open box of the tool-use scene: inner half-width, wall half-thickness, wall half-height (m)."""
+TOOL_USE = SceneLayout(movable=("tool", "block"), kinematic=("box",), markers=(), still=("box",),
+                       oriented=("tool",), shapes=(("tool", "l-tool"), ("box", "open-box")))
+"""Chapter 4's tool-use scene (Fig. 4.7 left, bottom): an L-shaped tool, a cube out of the arm's
+reach, and an open box fixed on the table. 15 factors: ``eef``, ``grp``, ``tool.x/y/z/yaw``,
+``block.x/y/z``, ``box.x/y/z``."""

@@ -33,12 +33,13 @@ from robosuite.environments.manipulation.manipulation_env import ManipulationEnv
 from robosuite.models.arenas import TableArena
 from robosuite.models.grippers import register_gripper
 from robosuite.models.grippers.panda_gripper import PandaGripperBase
-from robosuite.models.objects import BoxObject
+from robosuite.models.objects import BoxObject, CompositeObject
 from robosuite.models.tasks import ManipulationTask
 
 from envs.manipulation_control import OSCPositionTorques
 from envs.manipulation_layout import (
-    FIXED_HALF, MANIPULATION, MARKER_RADIUS, MOV_HALF, TABLE_SIZE, TABLE_TOP, SceneLayout,
+    BOX_HEIGHT, BOX_INNER_HALF, BOX_WALL, FIXED_HALF, MANIPULATION, MARKER_RADIUS, MOV_HALF, TABLE_SIZE,
+    TABLE_TOP, TOOL_HANDLE_HALF, TOOL_HOOK_CENTRE, TOOL_HOOK_HALF, SceneLayout,
 )
 
 GRIPPER_JOINTS = ("finger_joint1", "finger_joint2")
@@ -112,10 +113,10 @@ class CausalTableScene(RobosuiteManipulationEnv):
         robot_model.set_base_xpos(robot_model.base_xpos_offset["table"](TABLE_SIZE[0]))
         arena = TableArena(table_full_size=TABLE_SIZE, table_offset=TABLE_TOP)
         arena.set_origin([0, 0, 0])
-        self.movables = [BoxObject(name, size=[MOV_HALF] * 3, rgba=_MOVABLE_RGBA[k % len(_MOVABLE_RGBA)])
+        self.movables = [_body(name, self.layout.shape(name), _MOVABLE_RGBA[k % len(_MOVABLE_RGBA)], "default")
                          for k, name in enumerate(self.layout.movable)]
-        self.kinematics = [BoxObject(name, size=[FIXED_HALF] * 3, rgba=_KINEMATIC_RGBA.get(name, [0.5] * 3 + [1]),
-                                     joints=None) for name in self.layout.kinematic]
+        self.kinematics = [_body(name, self.layout.shape(name), _KINEMATIC_RGBA.get(name, [0.5] * 3 + [1]), None)
+                           for name in self.layout.kinematic]
         for kinematic in self.kinematics:
             kinematic.get_obj().set("mocap", "true")
         for name in self.layout.markers:
@@ -182,6 +183,11 @@ class CausalTableScene(RobosuiteManipulationEnv):
     def movable_pos(self) -> np.ndarray:
         """``[M, 3]`` positions of the movable cubes."""
         return np.stack([self.mov_pos(k) for k in range(len(self.layout.movable))])
+
+    def mov_yaw(self, k: int = 0) -> float:
+        """Rotation (radians, (-pi, pi]) of movable body ``k`` about the vertical: the yaw of its quaternion."""
+        w, x, y, z = self.mov_quat(k)
+        return float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
 
     def mov_quat(self, k: int = 0) -> np.ndarray:
         a = self.mov_qpos_addr[k]
@@ -252,6 +258,33 @@ class CausalTableScene(RobosuiteManipulationEnv):
         self.contacts[:] = False
         self.contacts[groups[first], groups[second]] = True
         self.contacts[groups[second], groups[first]] = True
+
+
+def _body(name: str, shape: str, rgba: list[float], joints: Any) -> Any:
+    """A cube (``mov*``: half-size :data:`MOV_HALF`; kinematic: :data:`FIXED_HALF`), the L-shaped tool
+    (handle along its x axis, hook across the far end towards -y; origin at the handle's centre) or
+    the open box (a floor and four walls; origin at the floor's centre)."""
+    if shape == "cube":
+        return BoxObject(name, size=[MOV_HALF if joints else FIXED_HALF] * 3, rgba=rgba, joints=joints)
+    if shape == "l-tool":
+        hx, hy, hz = TOOL_HANDLE_HALF
+        return CompositeObject(
+            name, total_size=[hx, hy, hz], geom_types=["box", "box"], geom_sizes=[TOOL_HANDLE_HALF, TOOL_HOOK_HALF],
+            geom_locations=[(0.0, 0.0, 0.0), (*TOOL_HOOK_CENTRE, 0.0)], geom_names=["handle", "hook"],
+            rgba=rgba, density=500.0, locations_relative_to_center=True, joints=joints,
+            geom_frictions=[(1.0, 0.005, 0.0001)] * 2)
+    if shape == "open-box":
+        inner, wall, height = BOX_INNER_HALF, BOX_WALL, BOX_HEIGHT
+        outer = inner + 2 * wall
+        sizes = [(outer, outer, wall)] + [(wall, outer, height), (wall, outer, height),
+                                          (inner, wall, height), (inner, wall, height)]
+        places = [(0.0, 0.0, 0.0)] + [(s * (inner + wall), 0.0, height) for s in (-1, 1)] + [
+            (0.0, s * (inner + wall), height) for s in (-1, 1)]
+        return CompositeObject(
+            name, total_size=[outer, outer, height + wall], geom_types=["box"] * 5, geom_sizes=sizes,
+            geom_locations=places, geom_names=["floor", "wall0", "wall1", "wall2", "wall3"], rgba=rgba,
+            locations_relative_to_center=True, joints=joints)
+    raise ValueError(f"unknown body shape {shape!r}")
 
 
 def _geom_groups(m: Any, robot_root: str, cubes: list[str]) -> np.ndarray:

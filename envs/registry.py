@@ -44,7 +44,7 @@ class EnvOptions:
     episode_length: int = doc(0, "steps per episode (0: the environment's default)")
     room_size: int = doc(0, "household tasks and 2D Minecraft: side of the room in cells (0: the env's default)")
     distractors: str = doc("20,20", "chapter 4's distractor factors, 'controllable,uncontrollable': random "
-                                    "projections of the action and U(-1, 1) noise (chemical-distractors, block)")
+                                    "projections of the action and U(-1, 1) noise (chemical-distractors, block, tool-use)")
 
     def __post_init__(self) -> None:
         if self.episode_length < 0 or self.room_size < 0:
@@ -171,6 +171,12 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              options=("episode_length", "distractors"), truth="global+local",
              constant_factors=manipulation_layout.BLOCK.constant_factors,
              tasks=dict.fromkeys(("pick", "stack"), "block"), task_kwarg="task", local_scoring=True),
+    EnvEntry("tool-use", "causeway/ToolUse-v0", "envs.tool_use:ToolUseEnv",
+             "chapter 4's tool-use scene (CBM): UR5e, an L-shaped tool, a block out of reach, a fixed open box, "
+             "20+20 distractors; Series",
+             options=("episode_length", "distractors"), truth="global+local",
+             constant_factors=manipulation_layout.TOOL_USE.constant_factors,
+             tasks={"series": "tool-use"}, task_kwarg="task", local_scoring=True),
     EnvEntry("installing-printer", "causeway/InstallingPrinter-v0", "envs.household.printer:InstallingPrinterEnv",
              "Mini-BEHAVIOR Installing Printer (ch. 6): pick the printer, put it on the table, turn it on",
              options=_GRID, constant_factors=("table.clean",), check=_check_by_building("installing-printer"),

@@ -20,7 +20,9 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 
-from envs.manipulation_layout import EEF, FIXED_HALF, MOV_HALF, TABLE_TOP, WORKSPACE_HIGH, WORKSPACE_LOW, factor_slice
+from envs.manipulation_layout import (
+    EEF, FIXED_HALF, MANIPULATION, MOV_HALF, TABLE_TOP, WORKSPACE_HIGH, WORKSPACE_LOW, SceneLayout,
+)
 
 SKILLS = ("reach", "grasp", "push")
 CUBES = ("mov", "unm", "rand")
@@ -92,8 +94,8 @@ class Skill:
         return None
 
 
-def _cube(obs: np.ndarray, obj: str) -> np.ndarray:
-    return obs[factor_slice(obj)]
+def _cube(obs: np.ndarray, obj: str, layout: SceneLayout = MANIPULATION) -> np.ndarray:
+    return obs[layout.factor_slice(obj)][:3]
 
 
 def _half(obj: str) -> float:
@@ -108,13 +110,14 @@ def reach(target: np.ndarray, opening: float = 1.0, *, max_steps: int = 25, max_
     return Skill("reach", [phase], max_displacement)
 
 
-def grasp(obj: str = "mov", *, max_displacement: float = 0.03) -> Skill:
-    """Pick ``obj`` up: hover above it, descend with the gripper open, close, lift ``LIFT`` metres."""
+def grasp(obj: str = "mov", *, max_displacement: float = 0.03, layout: SceneLayout = MANIPULATION) -> Skill:
+    """Pick ``obj`` (a cube of ``layout``) up: hover above it, descend with the gripper open, close,
+    lift ``LIFT`` metres."""
     def above(obs: np.ndarray, start: np.ndarray) -> np.ndarray:
-        return _cube(obs, obj) + [0.0, 0.0, HOVER]
+        return _cube(obs, obj, layout) + [0.0, 0.0, HOVER]
 
     def around(obs: np.ndarray, start: np.ndarray) -> np.ndarray:
-        return _cube(obs, obj) - [0.0, 0.0, 0.005]
+        return _cube(obs, obj, layout) - [0.0, 0.0, 0.005]
 
     def hold(obs: np.ndarray, start: np.ndarray) -> np.ndarray:
         return start[EEF]

@@ -1,5 +1,5 @@
-"""Table 4.1's benchmark on the block scene: its collection data (4-D actions, the scripted grasp that
-makes the cubes move) and the truth it scores against."""
+"""Table 4.1's benchmark on the block and tool-use scenes: their collection data (4-D actions, the
+scripted grasp or Series solution that makes the cubes and the tool move) and the truth it scores against."""
 from __future__ import annotations
 
 from benchmarks.cbm_graph_table import collect
@@ -14,3 +14,14 @@ def test_block_collection_opens_with_a_grasp_of_mov1() -> None:
     first = data["next_state"][:40, 7]
     assert first.max() >= TABLE_TOP[2] + MOV_HALF + PICK_HEIGHT  # the opening grasp lifted mov1 (success)
     assert data["reward"][:40].max() == 1.0
+
+
+def test_tool_use_collection_opens_with_the_scripted_series() -> None:
+    from envs.manipulation_layout import TOOL_USE
+    from envs.tool_use import IN_REACH_X
+
+    spec, data = collect(dict(distractors="1,1", task="series", episode_length=90), 90, 0, "tool-use")
+    assert spec.env_id == "tool-use" and spec.num_factors == 15 + 2 and data["state"].shape == (90, 17)
+    tool_z, block_x = TOOL_USE.factor_slice("tool").start + 2, TOOL_USE.factor_slice("block").start
+    assert data["next_state"][:, tool_z].max() > TABLE_TOP[2] + 0.05  # the tool lifted over the block
+    assert data["state"][0, block_x] > 0.25 and data["next_state"][-1, block_x] <= IN_REACH_X  # and pulled it in
