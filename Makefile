@@ -17,7 +17,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check torch==2.13.0
-	$(PY) -m pip install -q --disable-pip-version-check -e '.[test,deploy]'
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[test,deploy,dmc]'
 	touch $@
 
 # Debian tools the integration tests drive for real (validators, Prometheus, Chromium).

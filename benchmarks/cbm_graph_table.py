@@ -353,12 +353,12 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block", "tool-use"))
+    p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block", "tool-use", "dmc-walker", "dmc-cheetah"))
     p.add_argument("--num-objects", type=int, default=3)
     p.add_argument("--graph", default="full")
     p.add_argument("--distractors", default="5,5")
     p.add_argument("--task", default="match", help="chemical-distractors: match (every object) or match-first "
-                                                    "(object 0 only); block: pick or stack; tool-use: series")
+                                                    "(object 0 only); block: pick or stack; tool-use: series; dmc-walker: walk, stand or run; dmc-cheetah: run")
     p.add_argument("--episode-length", type=int, default=0, help="steps per episode (0: the env's default)")
     p.add_argument("--steps", type=int, default=20_000, help="random-policy transitions per seed")
     p.add_argument("--updates", type=int, default=5_000)

@@ -44,7 +44,7 @@ class EnvOptions:
     episode_length: int = doc(0, "steps per episode (0: the environment's default)")
     room_size: int = doc(0, "household tasks and 2D Minecraft: side of the room in cells (0: the env's default)")
     distractors: str = doc("20,20", "chapter 4's distractor factors, 'controllable,uncontrollable': random "
-                                    "projections of the action and U(-1, 1) noise (chemical-distractors, block, tool-use)")
+                                    "projections of the action and U(-1, 1) noise (chemical-distractors, block, tool-use, dmc-*)")
 
     def __post_init__(self) -> None:
         if self.episode_length < 0 or self.room_size < 0:
@@ -136,6 +136,18 @@ def _check_by_building(entry_name: str) -> Callable[[EnvOptions], None]:
     return check
 
 
+def _check_dmc(entry_name: str) -> Callable[[EnvOptions], None]:
+    """Build the env (cheap), so a missing ``dm_control`` is refused before anything starts, as a ``ValueError``."""
+    build = _check_by_building(entry_name)
+
+    def check(options: EnvOptions) -> None:
+        try:
+            build(options)
+        except ImportError as exc:
+            raise ValueError(str(exc)) from None
+    return check
+
+
 _CHEMICAL = ("graph", "num_objects", "cpt_seed", "episode_length")
 _GRID = ("episode_length", "room_size")
 _THAWING = ("thaw-fish", "thaw-olive", "thaw-date", "thaw-all")
@@ -177,6 +189,15 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              options=("episode_length", "distractors"), truth="global+local",
              constant_factors=manipulation_layout.TOOL_USE.constant_factors,
              tasks={"series": "tool-use"}, task_kwarg="task", local_scoring=True),
+    EnvEntry("dmc-walker", "causeway/DMCWalker-v0", "envs.dmc:WalkerEnv",
+             "DeepMind Control Suite Walker with 20+20 distractors (ch. 4, Fig. 4.7); needs dm_control",
+             options=("episode_length", "distractors"), truth="global",
+             tasks=dict.fromkeys(("walk", "stand", "run"), "dmc-walker"), task_kwarg="task",
+             check=_check_dmc("dmc-walker")),
+    EnvEntry("dmc-cheetah", "causeway/DMCCheetah-v0", "envs.dmc:CheetahEnv",
+             "DeepMind Control Suite Cheetah with 20+20 distractors (ch. 4, Fig. 4.7); needs dm_control",
+             options=("episode_length", "distractors"), truth="global",
+             tasks={"run": "dmc-cheetah"}, task_kwarg="task", check=_check_dmc("dmc-cheetah")),
     EnvEntry("installing-printer", "causeway/InstallingPrinter-v0", "envs.household.printer:InstallingPrinterEnv",
              "Mini-BEHAVIOR Installing Printer (ch. 6): pick the printer, put it on the table, turn it on",
              options=_GRID, constant_factors=("table.clean",), check=_check_by_building("installing-printer"),
