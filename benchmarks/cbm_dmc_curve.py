@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -36,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from benchmarks.pools import job_pool
 from causal.abstraction import minimal_abstraction
 from causal.factored import FactorLayout
 from causal.rl import ActionSpec, SACConfig, UniformReplay, abstraction_input_mask
@@ -138,19 +138,6 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-class _InProcess:
-    """A one-worker stand-in for the pool: the jobs run here, in order."""
-
-    def __enter__(self) -> "_InProcess":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def imap_unordered(self, fn: Any, items: list[Any]) -> Any:
-        return map(fn, items)
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="dmc-walker", choices=("dmc-walker", "dmc-cheetah"))
@@ -177,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
         todo += [(args.env, env_kwargs, c, kept[c], run, seed) for c in args.conditions if c in kept]
     meta = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}, "run": asdict(run)}
     rows: list[dict[str, Any]] = []
-    with multiprocessing.get_context("spawn").Pool(args.workers) if args.workers > 1 else _InProcess() as pool:
+    with job_pool(args.workers) as pool:
         for row in pool.imap_unordered(run_condition, todo):
             rows.append(row)
             print(f"seed {row['seed']} {row['condition']}: final {row['final_return']:.1f}, "

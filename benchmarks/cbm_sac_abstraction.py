@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -46,6 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from benchmarks.pools import job_pool
 from causal.cbm_config import CBMConfig
 from causal.factored import FactorLayout
 from causal.rl import ActionSpec, SACConfig, UniformReplay, abstraction_input_mask
@@ -235,19 +235,6 @@ def jobs(args: argparse.Namespace, run: SACRun) -> list[tuple[dict[str, Any], st
     return out
 
 
-class _InProcess:
-    """A one-worker stand-in for the pool: the jobs run here, in order."""
-
-    def __enter__(self) -> "_InProcess":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def imap_unordered(self, fn: Any, items: list[Any]) -> Any:
-        return map(fn, items)
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--num-objects", type=int, default=3)
@@ -271,7 +258,7 @@ def main(argv: list[str] | None = None) -> None:
     run = SACRun(**{f: getattr(args, f) for f in asdict(SACRun())})
     todo, rows = jobs(args, run), []
     meta = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}, "run": asdict(run)}
-    with multiprocessing.get_context("spawn").Pool(args.workers) if args.workers > 1 else _InProcess() as pool:
+    with job_pool(args.workers) as pool:
         for row in pool.imap_unordered(run_condition, todo):
             rows.append(row)
             print(f"seed {row['seed']} {row['condition']}: " + json.dumps({s: row[s] for s in SETTINGS})
