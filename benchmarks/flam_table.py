@@ -36,7 +36,9 @@ import torch
 from torch import nn
 
 from causal.dci import DCI, dci, position_dci
-from causal.flam import FLAM, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, fit_autoencoder, psnr, rollout
+from causal.flam import (
+    FLAM, MASK_PRIORS, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, fit_autoencoder, psnr, rollout,
+)
 from causal.flam_nets import FSQAutoencoder
 from causal.slots import frames_to_tensor
 from envs.multigrid_agents import MultiGridAgentsEnv, record_videos
@@ -98,8 +100,9 @@ def parse_args(argv: list[str] | None = None) -> Args:
                    help="Table 8.5's ablation: SAVi-style slots, no temporal attention in the factorizer")
     p.add_argument("--coupling", choices=("per-slot", "global"), default="per-slot",
                    help="global: Table 8.5's Global-Coupled FLAM")
-    p.add_argument("--mask-prior", choices=("none", "annealed"), default="none",
-                   help="FLAM: Dyn-O's annealed mask prior from the renderer's masks in training (never at evaluation)")
+    p.add_argument("--mask-prior", choices=MASK_PRIORS, default="none",
+                   help="FLAM: Dyn-O's annealed mask prior from the renderer's masks in training (never at "
+                        "evaluation); foreground: the same, annealed, saying only which tokens are agents")
     p.add_argument("--slot-reconstruction", type=float, default=0.0,
                    help="FLAM: weight of an added reconstruction of e_t from its slots (0: eq. 8.6 alone)")
     p.add_argument("--slot-stage-updates", type=int, default=600,
@@ -108,6 +111,9 @@ def parse_args(argv: list[str] | None = None) -> Args:
     args = vars(p.parse_args(argv))
     if args["num_slots"] == 1 or args["num_slots"] < 0:
         p.error(f"--num-slots must be 0 (agents + 1) or >= 2 (the background's slot and at least one more), got {args['num_slots']}")
+    if args["variant"] == "correlated" and args["mask_prior"] == "annealed":
+        p.error("--mask-prior annealed points slots at agents in index order, which on the correlated variant is "
+                "the grouping under test: use --mask-prior foreground or none")
     return Args(**{**args, "models": tuple(args["models"])})
 
 

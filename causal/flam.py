@@ -201,16 +201,24 @@ def lam_loss(features: torch.Tensor, out: LAMOutput, beta_kl: float,
     return loss, terms
 
 
+MASK_PRIORS = ("none", "annealed", "foreground")
+"""FLAM's priors on slot attention (:class:`LAMTrainer`)."""
+
+
 class LAMTrainer:
     """Adam on eq. 8.6 for FLAM or the monolithic model, on clips of frozen features.
 
     ``mask_prior="annealed"`` is Dyn-O's prior (causal/slots.py) applied to FLAM's slot attention:
     slot ``k`` sees only the tokens of segment ``k`` (token labels given to :meth:`update`), each clip
-    dropping its masks with probability log(1 + u) / log(1 + U) at update u of ``total_updates``."""
+    dropping its masks with probability log(1 + u) / log(1 + U) at update u of ``total_updates``.
+    ``mask_prior="foreground"`` is a weaker prior, annealed the same way, that says only *which tokens
+    are objects*: slot 0 sees the background's tokens (segment 0), every other slot the tokens of any
+    segment but 0, so the slots themselves decide which objects they share (not in the chapter; the
+    correlated variant's test, where the segment-per-slot prior would give the answer away)."""
 
     def __init__(self, model: nn.Module, seed: int = 0, mask_prior: str = "none", total_updates: int = 0) -> None:
-        if mask_prior not in ("none", "annealed"):
-            raise ValueError(f"mask_prior must be 'none' or 'annealed', got {mask_prior!r}")
+        if mask_prior not in MASK_PRIORS:
+            raise ValueError(f"mask_prior must be one of {MASK_PRIORS}, got {mask_prior!r}")
         self.model, self.config = model, model.config
         self.mask_prior, self.total_updates = mask_prior, total_updates
         self.optimizer = torch.optim.Adam(model.parameters(), lr=self.config.lr)
@@ -222,7 +230,12 @@ class LAMTrainer:
         """This update's attention masks ``[B, T, K, n]`` from token labels ``[B, T, n]``, or None."""
         if self.mask_prior == "none" or labels is None:
             return None
-        allowed = F.one_hot(labels.long(), self.config.num_slots).permute(0, 1, 3, 2).bool()
+        if self.mask_prior == "foreground":
+            foreground = labels[:, :, None, :] > 0
+            slot = torch.arange(self.config.num_slots)[None, None, :, None]
+            allowed = torch.where(slot == 0, ~foreground, foreground)
+        else:
+            allowed = F.one_hot(labels.long(), self.config.num_slots).permute(0, 1, 3, 2).bool()
         dropped = torch.rand(len(labels), generator=self.generator) < drop_probability(self.updates, self.total_updates)
         return allowed | dropped[:, None, None, None]
 

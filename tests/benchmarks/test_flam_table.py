@@ -95,3 +95,10 @@ def test_one_slot_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         parse_args(["--num-slots", "1"])
     assert "--num-slots must be 0" in capsys.readouterr().err
+
+
+def test_the_correlated_variant_refuses_the_segment_prior(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse_args(["--variant", "correlated", "--mask-prior", "annealed"])
+    assert "the grouping under test" in capsys.readouterr().err
+    assert parse_args(["--variant", "correlated", "--mask-prior", "foreground"]).mask_prior == "foreground"

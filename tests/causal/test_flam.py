@@ -174,6 +174,19 @@ def test_mask_prior_confines_each_slot_to_its_segment_and_anneals_away() -> None
         LAMTrainer(model, mask_prior="always")
 
 
+def test_foreground_prior_keeps_the_background_slot_apart_and_lets_the_others_share_objects() -> None:
+    model = _flam()
+    labels = torch.randint(3, (2, 3, TOKENS), generator=torch.Generator().manual_seed(1))
+    trainer = LAMTrainer(model, seed=0, mask_prior="foreground", total_updates=10)
+    allowed = trainer.masks_for(labels)
+    objects = labels > 0
+    assert torch.equal(allowed[:, :, 0], ~objects)  # the background's slot: background tokens only
+    for k in range(1, CONFIG.num_slots):  # every other slot: any object's tokens, whichever segment
+        assert torch.equal(allowed[:, :, k], objects)
+    trainer.updates = 10
+    assert trainer.masks_for(labels).all()  # annealed away like the segment prior
+
+
 def test_slot_reconstruction_term_is_added_when_weighted() -> None:
     torch.manual_seed(0)
     model = FLAM(FLAMConfig(**{**CONFIG.__dict__, "slot_reconstruction": 0.5}), TOKENS).eval()
