@@ -34,6 +34,7 @@ dynamics graph, and, from the same trained model, the parents the per-mask-varia
     python -m benchmarks.cbm_graph_table --env block --task pick --distractors 20,20 --steps 5000 --updates 1000
     python -m benchmarks.cbm_graph_table --env tool-use --task series --distractors 20,20 --steps 5000 --updates 1000
     python -m benchmarks.cbm_graph_table --num-objects 3 --distractors 5,5 --task match-first --reward-only --seeds 0 1 2
+    python -m benchmarks.cbm_graph_table --merge run0/cbm_table.json run1/cbm_table.json --out merged
 """
 from __future__ import annotations
 
@@ -351,6 +352,22 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def merge_tables(paths: list[Path]) -> dict[str, Any]:
+    """One table from several runs' ``cbm_table.json`` (rows concatenated, sorted by variant and seed);
+    ``ValueError`` if their factors differ or a (variant, seed) repeats."""
+    tables = [json.loads(path.read_text()) for path in paths]
+    names = tables[0]["factor_names"]
+    if any(t["factor_names"] != names for t in tables):
+        raise ValueError(f"the tables {[str(p) for p in paths]} were learned on different factors")
+    rows = [row for t in tables for row in t["rows"]]
+    keys = [(r["variant"], r["seed"]) for r in rows]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"a (variant, seed) appears twice in {[str(p) for p in paths]}")
+    order = list(dict.fromkeys(r["variant"] for r in rows))
+    rows.sort(key=lambda r: (order.index(r["variant"]), r["seed"]))
+    return {"args": [t["args"] for t in tables], "factor_names": names, "rows": rows}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block", "tool-use", "dmc-walker", "dmc-cheetah"))
@@ -373,9 +390,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--reward-only", action="store_true",
                    help="train and score the causal reward model alone (no dynamics): cbm_reward.json")
     p.add_argument("--out", type=Path, default=Path("benchmark-results/cbm_table"))
+    p.add_argument("--merge", type=Path, nargs="+", default=None,
+                   help="instead of training: merge these cbm_table.json files (one run per seed, the same "
+                        "factors) into <out>/cbm_table.json and print their table")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.merge:
+        merged = merge_tables(args.merge)
+        (args.out / "cbm_table.json").write_text(json.dumps(merged, indent=1))
+        print(table(merged["rows"]))
+        return
     env_kwargs: dict[str, Any] = dict(distractors=args.distractors, task=args.task)
     if args.env == "chemical-distractors":
         env_kwargs |= dict(graph=args.graph, num_objects=args.num_objects)

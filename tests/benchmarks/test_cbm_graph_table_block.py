@@ -2,6 +2,8 @@
 scripted grasp or Series solution that makes the cubes and the tool move) and the truth it scores against."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from benchmarks.cbm_graph_table import collect
 from envs.block import PICK_HEIGHT
 from envs.manipulation_layout import MOV_HALF, TABLE_TOP
@@ -25,3 +27,32 @@ def test_tool_use_collection_opens_with_the_scripted_series() -> None:
     tool_z, block_x = TOOL_USE.factor_slice("tool").start + 2, TOOL_USE.factor_slice("block").start
     assert data["next_state"][:, tool_z].max() > TABLE_TOP[2] + 0.05  # the tool lifted over the block
     assert data["state"][0, block_x] > 0.25 and data["next_state"][-1, block_x] <= IN_REACH_X  # and pulled it in
+
+
+def test_runs_of_single_seeds_merge_into_one_table(tmp_path: Path) -> None:
+    import json
+
+    import pytest
+
+    from benchmarks.cbm_graph_table import main, merge_tables
+
+    def run(seed: int, names: list[str]) -> Path:
+        row = {"graph": {k: 0.5 + seed / 10 for k in ("accuracy", "with_self_accuracy", "empty_with_self_accuracy",
+                                                      "f1", "non_distractor_f1")},
+               "reward": {"f1": 1.0, "accuracy": 1.0}, "abstraction_accuracy": 1.0,
+               "abstraction_accuracy_true_reward": 1.0, "cdl_abstraction_accuracy": 0.5, "seconds_per_update": 0.1}
+        path = tmp_path / f"s{seed}.json"
+        path.write_text(json.dumps({"args": {"seeds": [seed]}, "factor_names": names,
+                                    "rows": [{"variant": v, "seed": seed, **row} for v in ("implicit", "explicit")]}))
+        return path
+
+    paths = [run(1, ["a"]), run(0, ["a"])]
+    merged = merge_tables(paths)
+    assert [(r["variant"], r["seed"]) for r in merged["rows"]] == [("implicit", 0), ("implicit", 1),
+                                                                    ("explicit", 0), ("explicit", 1)]
+    main(["--merge", *map(str, paths), "--out", str(tmp_path / "merged")])
+    assert json.loads((tmp_path / "merged" / "cbm_table.json").read_text())["rows"] == merged["rows"]
+    with pytest.raises(ValueError, match="twice"):
+        merge_tables([paths[0], paths[0]])
+    with pytest.raises(ValueError, match="different factors"):
+        merge_tables([paths[0], run(2, ["b"])])
