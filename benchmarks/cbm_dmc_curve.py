@@ -146,6 +146,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--episode-length", type=int, default=1000)
     p.add_argument("--abstractions", type=Path, default=None,
                    help="cbm_table.json of a benchmarks.cbm_graph_table run on the same env (adds cbm and cdl)")
+    p.add_argument("--abstraction-seed", type=int, default=None,
+                   help="take every SAC seed's cbm and cdl abstractions from this seed's rows (default: its own)")
     for field, default in asdict(CurveRun()).items():
         p.add_argument(f"--{field.replace('_', '-')}", type=type(default), default=default)
     p.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
@@ -160,7 +162,8 @@ def main(argv: list[str] | None = None) -> None:
                   **({"task": args.task} if args.task else {})}
     todo = []
     for seed in args.seeds:
-        kept = kept_factors(args.env, env_kwargs, args.abstractions, seed)
+        source = seed if args.abstraction_seed is None else args.abstraction_seed
+        kept = kept_factors(args.env, env_kwargs, args.abstractions, source)
         todo += [(args.env, env_kwargs, c, kept[c], run, seed) for c in args.conditions if c in kept]
     meta = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}, "run": asdict(run)}
     rows: list[dict[str, Any]] = []

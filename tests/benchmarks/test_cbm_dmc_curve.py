@@ -29,3 +29,18 @@ def test_abstractions_of_another_env_are_refused(tmp_path: Path) -> None:
         kept_factors("dmc-cheetah", {"distractors": "1,1"}, table, 0)
     names = kept_factors("dmc-cheetah", {"distractors": "1,1"}, None, 0)
     assert names == {"full": list(range(19)), "true": list(range(17))}
+
+
+def test_cbm_and_cdl_abstractions_come_from_a_table_run(tmp_path: Path) -> None:
+    from envs.registry import make_env
+
+    env = make_env("dmc-cheetah", distractors="1,1").unwrapped
+    names = list(env.factor_names)
+    env.close()
+    rows = [{"variant": "implicit", "seed": 0, "kept": {"cbm": [0, 1], "cdl": [5]}},
+            {"variant": "explicit", "seed": 0, "kept": {"cbm": [3], "cdl": [2, 4]}}]
+    table = tmp_path / "cbm_table.json"
+    table.write_text(json.dumps({"factor_names": names, "rows": rows}))
+    kept = kept_factors("dmc-cheetah", {"distractors": "1,1"}, table, 0)
+    assert kept["cbm"] == [0, 1] and kept["cdl"] == [2, 4]  # CBM's implicit graph, CDL's explicit one
+    assert set(kept_factors("dmc-cheetah", {"distractors": "1,1"}, table, 1)) == {"full", "true"}
