@@ -77,11 +77,11 @@ class CollectionPolicy:
 
         scripted = self.episode % 2 == 0
         self.episode += 1
-        self.skill, self.budget = None, int(self.rng.integers(10, 161))
+        self.skill = None
         if scripted and self.env_name == "block":
             self.skill = grasp("mov1", layout=BLOCK)
-        elif scripted and self.env_name == "tool-use":
-            self.skill = SeriesScript()
+        elif scripted and self.env_name == "tool-use":  # the budget is drawn only here: other envs' draws stay as they were
+            self.skill, self.budget = SeriesScript(), int(self.rng.integers(10, 161))
 
     def act(self, obs: np.ndarray) -> np.ndarray | int:
         if self.skill is not None and self.env_name == "tool-use":

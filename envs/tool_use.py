@@ -113,12 +113,17 @@ class ToolUseEnv(BlockEnv):
         return obs, reward, terminated, truncated, info
 
 
+def _on_tool(obs: np.ndarray, local_xy: tuple[float, float]) -> np.ndarray:
+    """World xyz of the point ``local_xy`` of the tool's frame (at the tool's height) in ``obs``."""
+    x, y, z, yaw = np.asarray(obs[_S["tool"]], dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    lx, ly = local_xy
+    return np.array([x + c * lx - s * ly, y + s * lx + c * ly, z])
+
+
 def grip_point(scene_obs: np.ndarray) -> np.ndarray:
     """World xyz of the tool's grip point (:data:`envs.manipulation_layout.TOOL_GRIP`) in ``scene_obs``."""
-    x, y, z, yaw = np.asarray(scene_obs[_S["tool"]], dtype=np.float64)
-    c, s = np.cos(yaw), np.sin(yaw)
-    gx, gy = TOOL_GRIP
-    return np.array([x + c * gx - s * gy, y + s * gx + c * gy, z])
+    return _on_tool(scene_obs, TOOL_GRIP)
 
 
 def series_stages(scene_obs: np.ndarray) -> tuple[dict[str, float], int]:
@@ -127,7 +132,8 @@ def series_stages(scene_obs: np.ndarray) -> tuple[dict[str, float], int]:
     obs = np.asarray(scene_obs, dtype=np.float64)
     eef, grp, tool, block, box = (obs[_S[o]] for o in ("eef", "grp", "tool", "block", "box"))
     closed = grp[0] < OPEN_FINGER and -grp[1] < OPEN_FINGER
-    near_grip = np.linalg.norm(eef - grip_point(obs)) <= GRIP_TOLERANCE
+    to_grip = float(np.linalg.norm(eef - grip_point(obs)))
+    near_grip = to_grip <= GRIP_TOLERANCE
     holding = bool(closed and near_grip and grp[0] > 0.005)  # fingers stopped by the handle, not shut
     pulled = float(np.clip((BLOCK_FAR_X - block[0]) / (BLOCK_FAR_X - IN_REACH_X), 0.0, 1.0))
     lifted = float(np.clip((block[2] - _REST["block"]) / LIFT, 0.0, 1.0))
@@ -135,7 +141,7 @@ def series_stages(scene_obs: np.ndarray) -> tuple[dict[str, float], int]:
                   and block[2] <= box[2] + 2 * BOX_HEIGHT)
     released = bool(grp[0] > OPEN_FINGER and -grp[1] > OPEN_FINGER)
     placed = inside and released
-    reach_tool = 1.0 if pulled >= 1.0 else float(1.0 - np.tanh(10.0 * np.linalg.norm(eef - grip_point(obs))))
+    reach_tool = 1.0 if pulled >= 1.0 else float(1.0 - np.tanh(10.0 * to_grip))
     shown = (holding or pulled >= 1.0, pulled >= 1.0, lifted >= 1.0 or inside, placed)
     stages = next((k for k, ok in enumerate(shown) if not ok), len(shown))
     terms = {"reach_tool": reach_tool, "pulled": pulled, "lifted": 1.0 if inside else lifted, "placed": float(placed)}
@@ -158,10 +164,7 @@ def series_reward_parents(graph: np.ndarray) -> np.ndarray:
 
 def _hook(obs: np.ndarray) -> np.ndarray:
     """World xy of the tool's hook centre in ``obs``."""
-    x, y, _, yaw = np.asarray(obs[_S["tool"]], dtype=np.float64)
-    c, s = np.cos(yaw), np.sin(yaw)
-    hx, hy = TOOL_HOOK_CENTRE
-    return np.array([x + c * hx - s * hy, y + s * hx + c * hy])
+    return _on_tool(obs, TOOL_HOOK_CENTRE)[:2]
 
 
 def use_tool(*, max_displacement: float = 0.03) -> Skill:
