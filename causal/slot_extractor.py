@@ -84,6 +84,13 @@ class FrameSlotLearner:
         return torch.cat(parts) if parts else torch.empty(0, self.config.num_slots, self.config.slot_dim)
 
     @torch.no_grad()
+    def encode_with_masks(self, frames: torch.Tensor, chunk: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+        """Slots ``[B, K, d_xi]`` and their decoder masks (alpha, ``[B, K, n]`` over feature tokens), no masks given."""
+        self.model.eval()
+        outs = [self.model(frames[i : i + chunk]) for i in range(0, len(frames), chunk)]
+        return torch.cat([o.slots for o in outs]), torch.cat([o.alpha for o in outs])
+
+    @torch.no_grad()
     def segment(self, frames: torch.Tensor) -> torch.Tensor:
         """Each pixel's slot (int ``[B, H, W]``), no masks: what FG-ARI scores."""
         self.model.eval()

@@ -8,6 +8,8 @@ from causal.slots import SlotConfig
 from proto.settings import section
 from services.runtime.config import ServiceConfig, doc
 
+IDENTITIES = ("learned", "none")
+
 
 @dataclass(frozen=True)
 class FactorExtractorConfig(ServiceConfig):
@@ -24,6 +26,11 @@ class FactorExtractorConfig(ServiceConfig):
     replay_frames: int = doc(8192, "frames kept for learning the slots (oldest dropped)")
     warmup_frames: int = doc(256, "frames to hold before the first update")
     statistics_frames: int = doc(1024, "frames whose slots set the spec's per-slot loc and scale once frozen")
+    identity: str = doc("learned", "which slot is which object once frozen: 'learned' (a head fitted on the training "
+                                   "frames' masks puts each frame's slots in object order without masks, and the spec "
+                                   "carries the object graph as truth; needs labelled frames and K = objects + 1) or "
+                                   "'none' (slot attention's own order, free in each frame; no truth)")
+    identity_frames: int = doc(2048, "newest frames of the replay the identity head is fitted on (the older four fifths) and scored on (the newest fifth)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -33,5 +40,9 @@ class FactorExtractorConfig(ServiceConfig):
             raise ValueError("replay_frames, warmup_frames and statistics_frames must be >= 1")
         if self.warmup_frames > self.replay_frames:
             raise ValueError(f"warmup_frames ({self.warmup_frames}) must be <= replay_frames ({self.replay_frames})")
+        if self.identity not in IDENTITIES:
+            raise ValueError(f"identity must be one of {IDENTITIES}, got {self.identity!r}")
+        if self.identity_frames < 2:
+            raise ValueError(f"identity_frames must be >= 2, got {self.identity_frames}")
         if not (math.isfinite(self.ae_lr) and self.ae_lr > 0):
             raise ValueError(f"ae_lr must be a positive finite number, got {self.ae_lr}")

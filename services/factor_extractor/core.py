@@ -17,7 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from causal.fg_ari import fg_ari
+from causal.skild import object_graphs
 from causal.slot_extractor import FrameSlotLearner
+from causal.slot_identity import SlotIdentity, fit_identity, mask_targets, matching_accuracy
 from causal.slots import FEATURE_STRIDE
 from proto.codec import ProtocolError
 from proto.messages import EnvSpec, FrameBatch, TransitionBatch
@@ -28,15 +31,33 @@ SCALE_FLOOR = 1e-3
 """Smallest per-slot scale in the spec (a slot that never varies would otherwise divide by zero)."""
 
 
-def slot_spec(env: EnvSpec, num_slots: int, slot_dim: int, locs: tuple[float, ...], scales: tuple[float, ...]) -> EnvSpec:
+def slot_spec(env: EnvSpec, num_slots: int, slot_dim: int, locs: tuple[float, ...], scales: tuple[float, ...],
+              by_object: bool = False) -> EnvSpec:
     """The spec of the slot factors: the env's action space and episodes, K continuous factors of size
-    ``slot_dim``, no true graph (which slot is which object is learned, not given)."""
-    names = tuple(f"slot{k}" for k in range(num_slots))
-    config = {"env": env.env_id, "env_config": json.loads(env.config_json), "num_slots": num_slots, "slot_dim": slot_dim}
+    ``slot_dim``. Slots in object order (``by_object``, the identity head) are named ``background`` and the
+    env's objects, and carry the env's object graph as truth (:func:`slot_graph`); otherwise ``slot0`` ..
+    with no truth (which slot is which object changes from frame to frame)."""
+    objects = tuple(dict.fromkeys(env.factor_objects))
+    names = ("background",) + objects if by_object else tuple(f"slot{k}" for k in range(num_slots))
+    config = {"env": env.env_id, "env_config": json.loads(env.config_json), "num_slots": num_slots, "slot_dim": slot_dim,
+              "identity": "learned" if by_object else "none"}
+    truth = slot_graph(env) if by_object and env.global_graph is not None else None
     return EnvSpec(env_id=f"{env.env_id}-slots", factor_names=names, factor_kinds=("continuous",) * num_slots,
                    factor_sizes=(slot_dim,) * num_slots, factor_objects=names, factor_locs=locs, factor_scales=scales,
                    action_kind=env.action_kind, action_size=env.action_size, episode_length=env.episode_length,
-                   config_json=json.dumps(config, sort_keys=True))
+                   global_graph=truth, config_json=json.dumps(config, sort_keys=True))
+
+
+def slot_graph(env: EnvSpec) -> np.ndarray:
+    """uint8 ``[N + 1, N + 2]``: the env's graph over objects (one object depends on another when any of
+    its factors depends on any of the other's) with the background first, which depends on nothing but
+    itself (self-edges are assumed, as in every env's truth) and which nothing depends on."""
+    objects = object_graphs(env.global_graph[None], env.factor_objects)[0]
+    n = objects.shape[0]
+    graph = np.zeros((n + 1, n + 2), dtype=np.uint8)
+    graph[0, 0] = 1
+    graph[1:, 1:] = objects
+    return graph
 
 
 class FrameReplay:
@@ -62,9 +83,10 @@ class FrameReplay:
         labels = torch.from_numpy(self.labels[rows].astype(np.int64)) if self.labels is not None else None
         return torch.from_numpy(self.frames[rows]), labels
 
-    def newest(self, count: int) -> np.ndarray:
+    def newest(self, count: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The newest ``count`` frames held (newest first) and their label maps (None if unlabelled)."""
         rows = (self.next - 1 - np.arange(min(count, self.size))) % self.capacity
-        return self.frames[rows]
+        return self.frames[rows], (self.labels[rows] if self.labels is not None else None)
 
 
 class FactorExtractorCore:
@@ -74,6 +96,12 @@ class FactorExtractorCore:
         self.cfg, self.env = cfg, env
         self.num_objects = len(dict.fromkeys(env.factor_objects))
         self.slot_config = dataclasses.replace(cfg.slot, num_slots=cfg.num_slots or self.num_objects + 1)
+        if cfg.identity == "learned" and self.slot_config.num_slots != self.num_objects + 1:
+            raise ValueError(f"identity 'learned' names one slot per segment: num_slots must be {self.num_objects + 1} "
+                             f"(the background and {self.num_objects} objects), got {self.slot_config.num_slots}")
+        self.identity: SlotIdentity | None = None
+        self.identity_scores: dict[str, float] = {}
+        self.live_matching = np.zeros(4)  # slots right, slots scored, frames all right, frames scored
         self.learner: FrameSlotLearner | None = None
         self.replay: FrameReplay | None = None
         self.generator = torch.Generator().manual_seed(cfg.seed)
@@ -104,7 +132,7 @@ class FactorExtractorCore:
         self.replay.add(batch.frames, batch.labels)
         self.frames_trained_on += len(batch.frames)
         if self.learner.frozen and self.replay.size >= self.cfg.warmup_frames:  # no updates asked for
-            self._normalisation(self.replay.newest(self.cfg.statistics_frames))
+            self._freeze_outputs()
         return None
 
     def _check(self, batch: FrameBatch) -> None:
@@ -117,9 +145,10 @@ class FactorExtractorCore:
         if size != self.learner.frame_size:
             raise ProtocolError("inconsistent", f"FrameBatch: {size}-pixel frames, this extractor learned "
                                                 f"{self.learner.frame_size}-pixel ones")
-        needs_labels = self.slot_config.mask_prior != "none" and not self.learner.frozen
+        needs_labels = (self.slot_config.mask_prior != "none" or self.cfg.identity == "learned") and not self.ready
         if needs_labels and batch.labels is None:
-            raise ProtocolError("inconsistent", f"FrameBatch: no labels; mask prior {self.slot_config.mask_prior!r} needs them")
+            raise ProtocolError("inconsistent", f"FrameBatch: no labels; mask prior {self.slot_config.mask_prior!r} and "
+                                                f"identity {self.cfg.identity!r} need them while the slots are learned")
         if batch.labels is not None and int(batch.labels.max()) >= self.slot_config.num_slots:
             raise ProtocolError("inconsistent", f"FrameBatch.labels: object {int(batch.labels.max())} for "
                                                 f"{self.slot_config.num_slots} slots")
@@ -136,23 +165,47 @@ class FactorExtractorCore:
         frames, labels = self.replay.sample(self.slot_config.batch_size, self.generator)
         self.last_stats = self.learner.update(frames, labels)
         if self.learner.frozen:
-            self._normalisation(self.replay.newest(self.cfg.statistics_frames))
+            self._freeze_outputs()
         return self.last_stats
 
-    def _normalisation(self, frames: np.ndarray) -> None:
-        slots = self.learner.encode(torch.from_numpy(frames)).numpy().astype(np.float64)
+    def _freeze_outputs(self) -> None:
+        """Once frozen: fit the identity head (if learned) on the newest frames held, then each published
+        factor's loc and scale from the slots, in the order they will be published."""
+        if self.cfg.identity == "learned":
+            frames, labels = (x[::-1].copy() for x in self.replay.newest(self.cfg.identity_frames))  # oldest first
+            slots, alpha = self.learner.encode_with_masks(torch.from_numpy(frames))
+            self.identity, scores = fit_identity(slots, alpha, torch.from_numpy(labels), seed=self.cfg.seed)
+            held_out = slice(int(scores["fit_frames"]), None)
+            segments = self.learner.segment(torch.from_numpy(frames[held_out])).numpy()
+            self.identity_scores = {**scores, "fg_ari": float(np.nanmean(fg_ari(labels[held_out], segments)))}
+        frames, _ = self.replay.newest(self.cfg.statistics_frames)
+        slots = self._slots(frames)[0].numpy().astype(np.float64)
         self.locs = tuple(float(x) for x in slots.mean(axis=(0, 2)))
         self.scales = tuple(max(float(x), SCALE_FLOOR) for x in slots.std(axis=(0, 2)))
+
+    def _slots(self, frames: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each frame's slots ``[B, K, d]``, in object order under the identity head, and their alpha masks
+        in the same order."""
+        slots, alpha = self.learner.encode_with_masks(torch.from_numpy(frames))
+        if self.identity is None:
+            return slots, alpha
+        order = self.identity.assign(slots).argsort(dim=1)
+        return (torch.gather(slots, 1, order[..., None].expand_as(slots)),
+                torch.gather(alpha, 1, order[..., None].expand_as(alpha)))
 
     def spec(self) -> EnvSpec:
         """The spec of the published slot factors (only once :attr:`ready`)."""
         if not self.ready:
             raise RuntimeError("the slot representation is not frozen yet")
-        return slot_spec(self.env, self.slot_config.num_slots, self.slot_config.slot_dim, self.locs, self.scales)
+        return slot_spec(self.env, self.slot_config.num_slots, self.slot_config.slot_dim, self.locs, self.scales,
+                         by_object=self.identity is not None)
 
     def transitions(self, batch: FrameBatch) -> TransitionBatch:
         """``batch`` with each step's observation and next observation replaced by their frames' slots."""
-        slots = self.learner.encode(torch.from_numpy(batch.frames)).numpy().reshape(len(batch.frames), -1)
+        ordered, alpha = self._slots(batch.frames)
+        if self.identity is not None and batch.labels is not None:
+            self._score_matching(alpha, batch.labels)
+        slots = ordered.numpy().reshape(len(batch.frames), -1)
         self.batches_published += 1
         self.steps_published += len(batch)
         return TransitionBatch(worker_id=batch.worker_id, seq=batch.seq, policy_version=batch.policy_version,
@@ -160,16 +213,35 @@ class FactorExtractorCore:
                                next_state=slots[batch.next_frame], terminated=batch.terminated,
                                truncated=batch.truncated, episode_id=batch.episode_id, step=batch.step)
 
+    def _score_matching(self, alpha: torch.Tensor, labels: np.ndarray) -> None:
+        """Score the published order against the renderer's masks (slot ``m`` should hold segment ``m``)."""
+        targets = mask_targets(alpha, torch.from_numpy(labels))
+        scores = matching_accuracy(torch.arange(alpha.shape[1]).expand_as(targets), targets)
+        frames = len(labels)
+        self.live_matching += (scores["slot_accuracy"] * frames * alpha.shape[1], frames * alpha.shape[1],
+                               scores["frame_accuracy"] * frames, frames)
+
+    def matching(self) -> dict[str, float]:
+        """The identity head's matching accuracy, held out when it was fitted (with the slots' FG-ARI on the same
+        frames, no masks) and over every published frame with labels (``published_*``)."""
+        out = {f"identity_{k}": v for k, v in self.identity_scores.items() if k.endswith("accuracy")}
+        if "fg_ari" in self.identity_scores:
+            out["fg_ari"] = self.identity_scores["fg_ari"]
+        if self.live_matching[1]:
+            out["published_identity_slot_accuracy"] = float(self.live_matching[0] / self.live_matching[1])
+            out["published_identity_frame_accuracy"] = float(self.live_matching[2] / self.live_matching[3])
+        return out
+
     def progress(self) -> dict[str, float]:
         updates = self.learner.updates if self.learner is not None else 0
         return {"slot_updates": updates, "frames_trained_on": self.frames_trained_on, "ready": float(self.ready),
                 "batches_published": self.batches_published, "env_steps": self.steps_published,
-                **{k: v for k, v in self.last_stats.items() if k != "phase"}}
+                **{k: v for k, v in self.last_stats.items() if k != "phase"}, **self.matching()}
 
     def fingerprint(self) -> str:
         return json.dumps({"env": self.env.env_id, "env_config": json.loads(self.env.config_json),
                            "slots": dataclasses.asdict(self.slot_config), "ae_updates": self.cfg.ae_updates,
-                           "slot_updates": self.cfg.slot_updates}, sort_keys=True)
+                           "slot_updates": self.cfg.slot_updates, "identity": self.cfg.identity}, sort_keys=True)
 
     def checkpoint(self, path: Path) -> None:
         """The slot model, its optimisers and phase, and the normalisation (frames are not kept: a restart
@@ -178,7 +250,9 @@ class FactorExtractorCore:
             return
         save_checkpoint({"fingerprint": self.fingerprint(), "frame_size": self.learner.frame_size,
                          "learner": self.learner.state_dict(), "locs": list(self.locs or ()),
-                         "scales": list(self.scales or ()), "frames_trained_on": self.frames_trained_on}, path)
+                         "scales": list(self.scales or ()), "frames_trained_on": self.frames_trained_on,
+                         "identity": self.identity.state_dict() if self.identity is not None else None,
+                         "identity_scores": self.identity_scores}, path)
 
     def restore(self, path: Path) -> bool:
         saved = load_checkpoint(path)
@@ -190,4 +264,8 @@ class FactorExtractorCore:
         if saved["scales"]:
             self.locs, self.scales = tuple(saved["locs"]), tuple(saved["scales"])
         self.frames_trained_on = int(saved["frames_trained_on"])
+        if saved.get("identity") is not None:
+            self.identity = SlotIdentity(self.slot_config.slot_dim, self.slot_config.num_slots)
+            self.identity.load_state_dict(saved["identity"])
+            self.identity_scores = dict(saved["identity_scores"])
         return True

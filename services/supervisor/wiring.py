@@ -95,6 +95,14 @@ def _check_frames(cfg: RunConfig, method: Method) -> None:
     if cfg.extractor.slot.mask_prior != "none" and "masks" not in info:
         raise ValueError(f"--extractor-slot-mask-prior {cfg.extractor.slot.mask_prior} needs the frames' masks; "
                          f"{cfg.env} gives none (use none)")
+    if cfg.extractor.identity == "learned":
+        if "masks" not in info:
+            raise ValueError(f"--extractor-identity learned fits its head on the frames' masks; {cfg.env} gives none "
+                             f"(use --extractor-identity none)")
+        segments = len(info["masks"])
+        if cfg.extractor.num_slots not in (0, segments):
+            raise ValueError(f"--extractor-identity learned names one slot per segment: --extractor-num-slots must be "
+                             f"0 or {segments} on {cfg.env}, got {cfg.extractor.num_slots} (or --extractor-identity none)")
 
 
 def _check_edge_tests(cfg: RunConfig, method: Method) -> None:

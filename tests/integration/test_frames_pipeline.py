@@ -66,7 +66,7 @@ def test_worker_frames_become_slot_transitions_for_the_learner(tmp_path: Path) -
     try:
         spec = wait_for(lambda: [decode(p, EnvSpec) for _, p in learner.query(topics.env_spec(RUN), timeout=1.0)],
                         120, "the slot spec on env/spec")[0]
-        assert spec.env_id == "chemical-pixels-slots" and spec.factor_names == tuple(f"slot{k}" for k in range(4))
+        assert spec.env_id == "chemical-pixels-slots" and spec.factor_names == ("background", "obj0", "obj1", "obj2")
         wait_for(lambda: len(batches) >= 2, 60, "two slot transition batches")
         for batch in batches[:2]:
             check_fits(spec, batch)

@@ -11,12 +11,13 @@ import torch
 from envs.chemical_pixels import ChemicalPixelsEnv
 from proto.codec import ProtocolError, decode, encode
 from proto.fits import check_fits
-from proto.messages import FrameBatch
+from proto.messages import FrameBatch, ServiceStats
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.factor_extractor.config import FactorExtractorConfig
-from services.factor_extractor.core import FactorExtractorCore
+from services.factor_extractor.core import FactorExtractorCore, slot_graph
 from services.runtime.config import build_config
+from services.supervisor.report_slots import SCORES, slot_facts
 
 torch.set_num_threads(1)
 
@@ -66,8 +67,9 @@ def test_slots_are_learned_then_frozen_and_published_as_transitions(tmp_path) ->
     batch = worker.collect_frames()
     out = core.transitions(batch)
     spec = core.spec()
-    assert spec.state_dim == 4 * 16 and spec.factor_names == ("slot0", "slot1", "slot2", "slot3")
-    assert spec.action_size == worker.spec.action_size and spec.global_graph is None
+    assert spec.state_dim == 4 * 16 and spec.factor_names == ("background", "obj0", "obj1", "obj2")
+    assert spec.action_size == worker.spec.action_size
+    assert np.array_equal(spec.global_graph, slot_graph(worker.spec))
     check_fits(spec, out)
     decode(encode(spec))
     assert out.state.shape == (24, 64) and np.isfinite(out.state).all()
@@ -87,10 +89,11 @@ def test_checkpoint_resumes_the_frozen_slots(tmp_path) -> None:
         core.train_step()
     core.checkpoint(tmp_path / "x.pt")
     resumed = FactorExtractorCore(_extractor(tmp_path), worker.spec)
-    assert resumed.restore(tmp_path / "x.pt") and resumed.ready and resumed.spec() == core.spec()
+    assert resumed.restore(tmp_path / "x.pt") and resumed.ready and encode(resumed.spec()) == encode(core.spec())
     batch = worker.collect_frames()
     assert np.array_equal(resumed.transitions(batch).state, core.transitions(batch).state)
-    other = FactorExtractorCore(_extractor(tmp_path, num_slots=6), worker.spec)
+    assert resumed.identity_scores == core.identity_scores and resumed.identity_scores
+    other = FactorExtractorCore(_extractor(tmp_path, num_slots=6, identity="none"), worker.spec)
     with pytest.raises(ValueError, match="different"):
         other.restore(tmp_path / "x.pt")
 
@@ -107,3 +110,48 @@ def test_frames_that_do_not_fit_are_refused(tmp_path) -> None:
         core.ingest(dataclasses.replace(batch, labels=None))
     with pytest.raises(ProtocolError, match="object 7"):
         core.ingest(dataclasses.replace(batch, labels=np.full_like(batch.labels, 7)))
+
+
+def test_slot_graph_is_the_object_graph_with_a_background() -> None:
+    """Chemical ``full`` on 3 objects: obj0 -> obj2 and obj0, obj1 -> ... as Figure 3.5's object graph;
+    the background has its self-edge only and the action reaches every object."""
+    spec = ChemicalPixelsEnv(graph="full", num_objects=3).env_spec()
+    graph = slot_graph(spec)
+    assert graph.shape == (4, 5)
+    assert graph[0].tolist() == [1, 0, 0, 0, 0] and graph[:, 0].tolist() == [1, 0, 0, 0]
+    assert graph[1:, 1:].tolist() == [[1, 0, 0, 1], [0, 1, 0, 1], [1, 0, 1, 1]]
+
+
+def test_identity_none_keeps_slot_attentions_order_and_no_truth(tmp_path) -> None:
+    worker = _worker()
+    core = FactorExtractorCore(_extractor(tmp_path, identity="none"), worker.spec)
+    for _ in range(2):
+        core.ingest(worker.collect_frames())
+    while core.may_update:
+        core.train_step()
+    spec = core.spec()
+    assert spec.factor_names == ("slot0", "slot1", "slot2", "slot3") and spec.global_graph is None
+    assert core.identity is None and "identity_slot_accuracy" not in core.progress()
+
+
+def test_learned_identity_needs_one_slot_per_segment(tmp_path) -> None:
+    with pytest.raises(ValueError, match="num_slots must be 4"):
+        FactorExtractorCore(_extractor(tmp_path, num_slots=6), _worker().spec)
+
+
+def test_published_slots_are_scored_against_the_masks(tmp_path) -> None:
+    """Once frozen, every published batch with labels adds to the matching accuracy in the progress."""
+    worker = _worker()
+    core = FactorExtractorCore(_extractor(tmp_path), worker.spec)
+    for _ in range(2):
+        core.ingest(worker.collect_frames())
+    assert slot_facts(ServiceStats("factor-extractor", "0", core.progress())) == {}  # not frozen yet
+    while core.may_update:
+        core.train_step()
+    progress = core.progress()
+    assert 0.0 <= progress["identity_slot_accuracy"] <= 1.0 and "published_identity_slot_accuracy" not in progress
+    core.ingest(worker.collect_frames())
+    progress = core.progress()
+    assert 0.0 <= progress["published_identity_frame_accuracy"] <= progress["published_identity_slot_accuracy"] <= 1.0
+    slots = slot_facts(ServiceStats("factor-extractor", "0", progress))["slots"]
+    assert set(SCORES) <= set(slots) and -1.0 <= slots["fg_ari"] <= 1.0 and slots["slot_updates"] == 5

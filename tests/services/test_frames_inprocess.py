@@ -42,6 +42,9 @@ def test_wiring_starts_an_extractor_with_frames_only(tmp_path) -> None:
         resolve(_cfg(tmp_path, env="chemical"))
     with pytest.raises(ValueError, match="method 'dyno' learns from frames itself"):
         resolve(_cfg(tmp_path, method="dyno"))
+    with pytest.raises(ValueError, match="--extractor-num-slots must be 0 or 4"):
+        resolve(_cfg(tmp_path, extractor_num_slots=6))
+    assert resolve(_cfg(tmp_path, extractor_num_slots=6, extractor_identity="none")).extractor.num_slots == 6
 
 
 def test_cdl_learns_over_slots_from_frames_in_process(tmp_path) -> None:
@@ -58,8 +61,10 @@ def test_cdl_learns_over_slots_from_frames_in_process(tmp_path) -> None:
         wait_for(lambda: reports, 240, "a graph report over slots")
     finally:
         stack.stop(timeout=120)
+    names = ("background", "obj0", "obj1", "obj2")  # the identity head puts the slots in object order
     layout = json.loads(weights[-1].config_json)["layout"]
-    assert layout["names"] == ["slot0", "slot1", "slot2", "slot3"] and layout["sizes"] == [16] * 4
-    assert reports[-1].factor_names == ("slot0", "slot1", "slot2", "slot3") and reports[-1].cmi.shape == (4, 5)
-    assert reports[-1].true_graph is None and "f1" not in reports[-1].metrics
+    assert tuple(layout["names"]) == names and layout["sizes"] == [16] * 4
+    assert reports[-1].factor_names == names and reports[-1].cmi.shape == (4, 5)
+    assert reports[-1].true_graph is not None and reports[-1].true_graph.shape == (4, 5)
+    assert 0.0 <= reports[-1].metrics["f1"] <= 1.0  # scored against chain's object graph
     assert time.time() - reports[-1].timestamp < 600
