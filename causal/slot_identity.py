@@ -5,10 +5,10 @@ lost once the masks are dropped: results.md, Table 7.1's slot identity). A causa
 needs slot ``k`` to be the same object at t and t + 1, and a graph over slots means something only
 when slot ``k`` is the same object in every frame. So, once the slots are frozen:
 
-1. **Targets from the masks** (training frames only): each slot's object is the one its decoder mask
-   (alpha) overlaps most, a maximum-overlap one-to-one assignment of the K slots to the K segments
-   (the background and each object) of the renderer's label map.
-2. **An identity head**: a linear softmax classifier from a slot's vector to its object, fitted on
+1. **Targets from the masks** (training frames only): each slot's object is the segment its decoder
+   mask (alpha) covers most of, a one-to-one assignment of the K slots to the K segments (the
+   background and each object) of the renderer's label map.
+2. **An identity head**: a small MLP classifier from a slot's vector to its object, fitted on
    those targets. Objects differ in what a slot encodes of them (in ``chemical-pixels`` each object has
    its own shape; colour and position vary).
 3. **Inference without masks**: each frame's slots are put in object order by the most probable
@@ -25,9 +25,13 @@ import itertools
 
 import torch
 import torch.nn.functional as F
+from torch import nn
 from scipy.optimize import linear_sum_assignment
 
 from causal.slots import FEATURE_STRIDE
+
+HIDDEN = 64
+"""Width of the identity head's two hidden layers."""
 
 EXACT_UP_TO = 7
 """K up to which :func:`best_assignment` scores every permutation in one tensor op (7! = 5,040);
@@ -58,10 +62,13 @@ def segment_fractions(labels: torch.Tensor, num_segments: int, stride: int = FEA
 
 
 def mask_targets(alpha: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Each slot's object from the masks: the maximum-overlap assignment of the slots' alpha masks
-    ``[B, K, n]`` to the segments of the label maps ``[B, H, W]``; long ``[B, K]``."""
+    """Each slot's object from the masks: the one-to-one assignment of the slots' alpha masks ``[B, K, n]``
+    to the segments of the label maps ``[B, H, W]`` that covers the largest total share of each segment;
+    long ``[B, K]``. Shares, not pixel counts: slot attention spreads the background over every slot,
+    and by counts the background would outweigh each slot's own object (it did, on a run's slots)."""
     fractions = segment_fractions(labels, alpha.shape[1])
-    return best_assignment(alpha @ fractions.transpose(1, 2))
+    covered = (alpha @ fractions.transpose(1, 2)) / fractions.sum(-1).clamp_min(1e-6)[:, None, :]
+    return best_assignment(covered)
 
 
 def matching_accuracy(assigned: torch.Tensor, targets: torch.Tensor) -> dict[str, float]:
@@ -71,35 +78,39 @@ def matching_accuracy(assigned: torch.Tensor, targets: torch.Tensor) -> dict[str
 
 
 class SlotIdentity:
-    """A linear softmax head from a slot's vector ``[d]`` to its object (K classes), on standardised inputs."""
+    """A small MLP from a slot's vector ``[d]`` to its object (K classes), on standardised inputs.
 
-    def __init__(self, slot_dim: int, num_objects: int, seed: int = 0) -> None:
-        generator = torch.Generator().manual_seed(seed)
-        self.weight = torch.randn(num_objects, slot_dim, generator=generator) * 0.01
-        self.bias = torch.zeros(num_objects)
+    A linear head was tried first: on one run's frozen slots (4,096 frames, the last fifth held out) it
+    matched 0.53 (pixel-count targets) to 0.61 (:func:`mask_targets`) of held-out slots, this MLP 0.76
+    to 0.84: what tells the objects apart, their shape, is not linear in the slot vector."""
+
+    def __init__(self, slot_dim: int, num_objects: int, seed: int = 0, hidden: int = HIDDEN) -> None:
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            self.net = nn.Sequential(nn.Linear(slot_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                     nn.Linear(hidden, num_objects))
+        self.net.requires_grad_(False)
         self.loc, self.scale = torch.zeros(slot_dim), torch.ones(slot_dim)
 
-    def fit(self, slots: torch.Tensor, targets: torch.Tensor, steps: int = 300, lr: float = 0.05,
-            weight_decay: float = 1e-4) -> float:
+    def fit(self, slots: torch.Tensor, targets: torch.Tensor, steps: int = 1000, lr: float = 3e-3) -> float:
         """Fit on slots ``[B, K, d]`` and their objects ``[B, K]`` (full-batch Adam); the last loss."""
-        flat, labels = slots.reshape(-1, slots.shape[-1]).double(), targets.reshape(-1)
-        self.loc = flat.mean(0).float()
-        self.scale = flat.std(0).clamp_min(1e-6).float()
-        x = (flat.float() - self.loc) / self.scale
-        weight, bias = self.weight.clone().requires_grad_(True), self.bias.clone().requires_grad_(True)
-        optimizer = torch.optim.Adam([weight, bias], lr=lr, weight_decay=weight_decay)
+        flat, labels = slots.reshape(-1, slots.shape[-1]), targets.reshape(-1)
+        self.loc, self.scale = flat.mean(0), flat.std(0).clamp_min(1e-6)
+        x = (flat - self.loc) / self.scale
+        self.net.requires_grad_(True)
+        optimizer = torch.optim.Adam(self.net.parameters(), lr=lr)
         loss = torch.zeros(())
         for _ in range(steps):
-            loss = F.cross_entropy(x @ weight.T + bias, labels)
+            loss = F.cross_entropy(self.net(x), labels)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
-        self.weight, self.bias = weight.detach(), bias.detach()
+        self.net.requires_grad_(False)
         return float(loss.detach())
 
     def log_probs(self, slots: torch.Tensor) -> torch.Tensor:
         """``[B, K, K]``: log p(object m | slot k)."""
-        return F.log_softmax(((slots - self.loc) / self.scale) @ self.weight.T + self.bias, dim=-1)
+        return F.log_softmax(self.net((slots - self.loc) / self.scale), dim=-1)
 
     def assign(self, slots: torch.Tensor) -> torch.Tensor:
         """Each slot's object ``[B, K]``, one object per slot (the most probable joint assignment)."""
@@ -110,12 +121,13 @@ class SlotIdentity:
         assigned = self.assign(slots)
         return torch.gather(slots, 1, assigned.argsort(dim=1)[..., None].expand_as(slots))
 
-    def state_dict(self) -> dict[str, list]:
-        return {k: getattr(self, k).tolist() for k in ("weight", "bias", "loc", "scale")}
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {**{f"net.{k}": v.clone() for k, v in self.net.state_dict().items()}, "loc": self.loc.clone(),
+                "scale": self.scale.clone()}
 
-    def load_state_dict(self, state: dict[str, list]) -> None:
-        for k in ("weight", "bias", "loc", "scale"):
-            setattr(self, k, torch.tensor(state[k], dtype=torch.float32))
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        self.net.load_state_dict({k[len("net."):]: v for k, v in state.items() if k.startswith("net.")})
+        self.loc, self.scale = state["loc"].clone(), state["scale"].clone()
 
 
 def fit_identity(slots: torch.Tensor, alpha: torch.Tensor, labels: torch.Tensor, held_out: float = 0.2,

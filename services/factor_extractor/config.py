@@ -30,7 +30,9 @@ class FactorExtractorConfig(ServiceConfig):
                                    "frames' masks puts each frame's slots in object order without masks, and the spec "
                                    "carries the object graph as truth; needs labelled frames and K = objects + 1) or "
                                    "'none' (slot attention's own order, free in each frame; no truth)")
-    identity_frames: int = doc(2048, "newest frames of the replay the identity head is fitted on (the older four fifths) and scored on (the newest fifth)")
+    identity_frames: int = doc(4096, "frames the identity head is fitted on (the older four fifths) and scored on (the "
+                                     "newest fifth): once the slots froze, frames go on filling the replay, unpublished, "
+                                     "until it holds this many (at most replay_frames)")
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -131,8 +131,8 @@ class FactorExtractorCore:
             self.replay = FrameReplay(self.cfg.replay_frames, height, width, batch.labels is not None)
         self.replay.add(batch.frames, batch.labels)
         self.frames_trained_on += len(batch.frames)
-        if self.learner.frozen and self.replay.size >= self.cfg.warmup_frames:  # no updates asked for
-            self._freeze_outputs()
+        if self.learner.frozen:  # the identity head waits for its frames (or no updates were asked for)
+            self._finish_when_held()
         return None
 
     def _check(self, batch: FrameBatch) -> None:
@@ -165,8 +165,19 @@ class FactorExtractorCore:
         frames, labels = self.replay.sample(self.slot_config.batch_size, self.generator)
         self.last_stats = self.learner.update(frames, labels)
         if self.learner.frozen:
-            self._freeze_outputs()
+            self._finish_when_held()
         return self.last_stats
+
+    def frames_needed(self) -> int:
+        """Frames the replay must hold, once the slots froze, before the identity head is fitted and
+        transitions are published (the warm-up's, or the head's ``identity_frames`` up to the replay's size)."""
+        if self.cfg.identity != "learned":
+            return self.cfg.warmup_frames
+        return max(self.cfg.warmup_frames, min(self.cfg.identity_frames, self.cfg.replay_frames))
+
+    def _finish_when_held(self) -> None:
+        if self.replay is not None and self.replay.size >= self.frames_needed():
+            self._freeze_outputs()
 
     def _freeze_outputs(self) -> None:
         """Once frozen: fit the identity head (if learned) on the newest frames held, then each published

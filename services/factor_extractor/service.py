@@ -66,7 +66,8 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
             if core.ready and not served:
                 shell.set_latest(latest_spec, core.spec())
                 served = True
-                log.info("slots frozen after %d updates: publishing slot transitions", core.learner.updates)
+                log.info("slots frozen after %d updates: publishing slot transitions%s", core.learner.updates,
+                         _identity_line(core.matching()))
             metrics.ready.set(float(core.ready))
             now = time.monotonic()
             if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
@@ -79,6 +80,13 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
         shell.beat(core.progress(), force=True)
         latest_spec.close()
         shell.close()
+
+
+def _identity_line(matching: dict[str, float]) -> str:
+    if "identity_slot_accuracy" not in matching:
+        return " (slot attention's own order)"
+    return (f" in object order (identity head, held-out frames: {matching['identity_slot_accuracy']:.3f} of slots, "
+            f"{matching['identity_frame_accuracy']:.3f} of frames matched; FG-ARI {matching.get('fg_ari', float('nan')):.3f})")
 
 
 def _wait_for_frames_spec(shell: ServiceShell, poll_s: float = 0.5) -> EnvSpec | None:

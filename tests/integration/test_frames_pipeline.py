@@ -73,7 +73,7 @@ def test_worker_frames_become_slot_transitions_for_the_learner(tmp_path: Path) -
             assert batch.state.shape == (64, 4 * 16) and batch.worker_id == "w0"
         assert batches[1].seq > batches[0].seq
         out = stop(extractor)
-        assert "slots frozen after 8 updates" in out, out
+        assert "slots frozen after 8 updates: publishing slot transitions in object order" in out, out
         seen = len(batches)
         extractor = start("services.factor_extractor", extractor_cfg, "factor-extractor")
         wait_for(lambda: len(batches) > seen, 60, "slot transitions from the restarted extractor")

@@ -29,7 +29,7 @@ def _worker(**kw) -> EnvWorkerCore:
 
 def _extractor(tmp_path, **kw) -> FactorExtractorConfig:
     settings = {"ae_updates": 2, "slot_updates": 3, "warmup_frames": 16, "replay_frames": 64, "statistics_frames": 32,
-                "run_dir": str(tmp_path), "slot_batch_size": 8, **kw}
+                "identity_frames": 32, "run_dir": str(tmp_path), "slot_batch_size": 8, **kw}
     return build_config(FactorExtractorConfig, **settings)
 
 
@@ -132,6 +132,21 @@ def test_identity_none_keeps_slot_attentions_order_and_no_truth(tmp_path) -> Non
     spec = core.spec()
     assert spec.factor_names == ("slot0", "slot1", "slot2", "slot3") and spec.global_graph is None
     assert core.identity is None and "identity_slot_accuracy" not in core.progress()
+
+
+def test_identity_head_waits_for_its_frames_unpublished(tmp_path) -> None:
+    """Frozen slots, but fewer frames held than the head is fitted on: frames go on filling the replay and
+    nothing is published until it holds them; the first batch after that is published."""
+    worker = _worker()
+    core = FactorExtractorCore(_extractor(tmp_path, identity_frames=1000), worker.spec)
+    assert core.frames_needed() == 64  # at most the replay's size
+    for _ in range(2):
+        core.ingest(worker.collect_frames())
+    while core.may_update:
+        core.train_step()
+    assert core.learner.frozen and not core.ready and core.replay.size == 54
+    assert core.ingest(worker.collect_frames()) is None and core.ready and core.identity_scores["fit_frames"] == 51
+    assert core.ingest(worker.collect_frames()) is not None
 
 
 def test_learned_identity_needs_one_slot_per_segment(tmp_path) -> None:
