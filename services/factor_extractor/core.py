@@ -188,7 +188,9 @@ class FactorExtractorCore:
             self.identity, scores = fit_identity(slots, alpha, torch.from_numpy(labels), seed=self.cfg.seed)
             held_out = slice(int(scores["fit_frames"]), None)
             segments = self.learner.segment(torch.from_numpy(frames[held_out])).numpy()
-            self.identity_scores = {**scores, "fg_ari": float(np.nanmean(fg_ari(labels[held_out], segments)))}
+            per_frame = fg_ari(labels[held_out], segments)
+            finite = per_frame[np.isfinite(per_frame)]  # frames without foreground have no FG-ARI
+            self.identity_scores = {**scores, **({"fg_ari": float(finite.mean())} if len(finite) else {})}
         frames, _ = self.replay.newest(self.cfg.statistics_frames)
         slots = self._slots(frames)[0].numpy().astype(np.float64)
         self.locs = tuple(float(x) for x in slots.mean(axis=(0, 2)))
