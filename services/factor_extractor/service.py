@@ -35,6 +35,8 @@ class _Metrics:
         self.encode_seconds = m.histogram("causeway_encode_seconds", "Time to turn one FrameBatch into slots",
                                           (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0))
         self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
+        self.identity = m.gauge("causeway_slot_identity_ratio", "Share of slots the identity head gives the object "
+                                "their mask holds: on its held-out frames, and over the published frames", ("scope",))
 
 
 def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
@@ -69,6 +71,7 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
                 log.info("slots frozen after %d updates: publishing slot transitions%s", core.learner.updates,
                          _identity_line(core.matching()))
             metrics.ready.set(float(core.ready))
+            _set_identity(metrics, core.matching())
             now = time.monotonic()
             if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
                 core.checkpoint(ckpt)
@@ -80,6 +83,12 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
         shell.beat(core.progress(), force=True)
         latest_spec.close()
         shell.close()
+
+
+def _set_identity(metrics: _Metrics, matching: dict[str, float]) -> None:
+    for scope, key in (("held_out", "identity_slot_accuracy"), ("published", "published_identity_slot_accuracy")):
+        if key in matching:
+            metrics.identity.labels(scope=scope).set(matching[key])
 
 
 def _identity_line(matching: dict[str, float]) -> str:

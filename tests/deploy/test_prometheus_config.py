@@ -51,7 +51,7 @@ SKILD_LEARNER_METRICS = {  # the policy-learner of a --method skild run
 EXTRACTOR_METRICS = {  # the factor-extractor of a --worker-publish-frames run
     "causeway_slot_updates_total", "causeway_slot_loss", "causeway_slots_frozen_ratio", "causeway_frames_received_total",
     "causeway_slot_transitions_published_total", "causeway_slot_transition_bytes_published_total",
-    "causeway_encode_seconds", "causeway_checkpoints_total",
+    "causeway_encode_seconds", "causeway_checkpoints_total", "causeway_slot_identity_ratio",
 }
 EVALUATOR_METRICS = {
     "causeway_graph_accuracy_ratio", "causeway_graph_precision_ratio", "causeway_graph_recall_ratio",
