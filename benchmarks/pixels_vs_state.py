@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from causal.graph_metrics import score_graph
+from services.supervisor.report import object_level
 
 SHOWN = ("f1", "best_threshold_f1", "roc_auc", "precision", "recall")
 
@@ -47,7 +48,7 @@ def object_scores(graph: dict[str, Any], threshold: float) -> dict[str, Any]:
         objects = names[:-1]
     else:
         cmi, objects = collapse(cmi, names)
-        truth = collapse(truth.astype(float), names)[0].astype(np.uint8)
+        truth = object_level(truth, tuple(names[:-1]))[0]
     scores = score_graph(cmi, truth, threshold)
     return {"objects": objects, "true_edges": int(truth.sum() - np.trace(truth[:, :-1])),
             **{k: float(scores[k]) for k in SHOWN}}

@@ -79,9 +79,9 @@ class FrameSlotLearner:
     @torch.no_grad()
     def encode(self, frames: torch.Tensor, chunk: int = 256) -> torch.Tensor:
         """Slots ``[B, K, d_xi]`` of frames uint8 ``[B, H, W, 3]``, no masks (inference as in Table 7.1)."""
-        self.model.eval()
-        parts = [self.model(frames[i : i + chunk]).slots for i in range(0, len(frames), chunk)]
-        return torch.cat(parts) if parts else torch.empty(0, self.config.num_slots, self.config.slot_dim)
+        if not len(frames):
+            return torch.empty(0, self.config.num_slots, self.config.slot_dim)
+        return self.encode_with_masks(frames, chunk)[0]
 
     @torch.no_grad()
     def encode_with_masks(self, frames: torch.Tensor, chunk: int = 256) -> tuple[torch.Tensor, torch.Tensor]:

@@ -116,10 +116,11 @@ class SlotIdentity:
         """Each slot's object ``[B, K]``, one object per slot (the most probable joint assignment)."""
         return best_assignment(self.log_probs(slots))
 
-    def order(self, slots: torch.Tensor) -> torch.Tensor:
-        """Slots ``[B, K, d]`` in object order: position ``m`` holds the slot assigned object ``m``."""
-        assigned = self.assign(slots)
-        return torch.gather(slots, 1, assigned.argsort(dim=1)[..., None].expand_as(slots))
+    def order(self, slots: torch.Tensor, *per_slot: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Slots ``[B, K, d]`` in object order (position ``m`` holds the slot assigned object ``m``), and
+        any other per-slot tensors ``[B, K, ...]`` (their masks) in the same order."""
+        order = self.assign(slots).argsort(dim=1)
+        return tuple(torch.gather(x, 1, order[..., None].expand_as(x)) for x in (slots, *per_slot))
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {**{f"net.{k}": v.clone() for k, v in self.net.state_dict().items()}, "loc": self.loc.clone(),

@@ -25,7 +25,8 @@ class FactorExtractorConfig(ServiceConfig):
                                   "and transitions are published")
     replay_frames: int = doc(8192, "frames kept for learning the slots (oldest dropped)")
     warmup_frames: int = doc(256, "frames to hold before the first update")
-    statistics_frames: int = doc(1024, "frames whose slots set the spec's per-slot loc and scale once frozen")
+    statistics_frames: int = doc(1024, "frames whose slots set the spec's per-slot loc and scale once frozen "
+                                          "(at most identity_frames with the identity head)")
     identity: str = doc("learned", "which slot is which object once frozen: 'learned' (a head fitted on the training "
                                    "frames' masks puts each frame's slots in object order without masks, and the spec "
                                    "carries the object graph as truth; needs labelled frames and K = objects + 1) or "

@@ -191,8 +191,11 @@ class FactorExtractorCore:
             per_frame = fg_ari(labels[held_out], segments)
             finite = per_frame[np.isfinite(per_frame)]  # frames without foreground have no FG-ARI
             self.identity_scores = {**scores, **({"fg_ari": float(finite.mean())} if len(finite) else {})}
-        frames, _ = self.replay.newest(self.cfg.statistics_frames)
-        slots = self._slots(frames)[0].numpy().astype(np.float64)
+            newest = slots[-min(self.cfg.statistics_frames, len(slots)):]  # already encoded: the statistics' frames
+            slots = self.identity.order(newest)[0].numpy().astype(np.float64)
+        else:
+            slots = self.learner.encode(torch.from_numpy(self.replay.newest(self.cfg.statistics_frames)[0]))
+            slots = slots.numpy().astype(np.float64)
         self.locs = tuple(float(x) for x in slots.mean(axis=(0, 2)))
         self.scales = tuple(max(float(x), SCALE_FLOOR) for x in slots.std(axis=(0, 2)))
 
@@ -200,11 +203,7 @@ class FactorExtractorCore:
         """Each frame's slots ``[B, K, d]``, in object order under the identity head, and their alpha masks
         in the same order."""
         slots, alpha = self.learner.encode_with_masks(torch.from_numpy(frames))
-        if self.identity is None:
-            return slots, alpha
-        order = self.identity.assign(slots).argsort(dim=1)
-        return (torch.gather(slots, 1, order[..., None].expand_as(slots)),
-                torch.gather(alpha, 1, order[..., None].expand_as(alpha)))
+        return (slots, alpha) if self.identity is None else self.identity.order(slots, alpha)
 
     def spec(self) -> EnvSpec:
         """The spec of the published slot factors (only once :attr:`ready`)."""
