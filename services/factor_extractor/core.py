@@ -30,6 +30,11 @@ from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save
 SCALE_FLOOR = 1e-3
 """Smallest per-slot scale in the spec (a slot that never varies would otherwise divide by zero)."""
 
+UNBOUND_FG_ARI = 0.5
+"""Held-out FG-ARI below which the frozen slots are reported as not bound to objects: before binding,
+slot attention's FG-ARI sits near 0 for the first ~2,000 updates and then jumps past 0.8 within a few
+hundred (docs/results.md, 'How long the slots need')."""
+
 
 def slot_spec(env: EnvSpec, num_slots: int, slot_dim: int, locs: tuple[float, ...], scales: tuple[float, ...],
               by_object: bool = False) -> EnvSpec:
@@ -243,6 +248,17 @@ class FactorExtractorCore:
             out["published_identity_slot_accuracy"] = float(self.live_matching[0] / self.live_matching[1])
             out["published_identity_frame_accuracy"] = float(self.live_matching[2] / self.live_matching[3])
         return out
+
+    def binding_warning(self) -> str | None:
+        """Why the frozen slots should not be trusted, or None: a held-out FG-ARI below
+        :data:`UNBOUND_FG_ARI` means slot attention froze before it bound the objects, and a graph over
+        such slots is a graph over arbitrary image parts."""
+        fg_ari = self.identity_scores.get("fg_ari")
+        if fg_ari is None or fg_ari >= UNBOUND_FG_ARI:
+            return None
+        return (f"the slots froze unbound: held-out FG-ARI {fg_ari:.3f} < {UNBOUND_FG_ARI} after "
+                f"{self.cfg.slot_updates} slot updates; a graph over them is not a graph over objects "
+                f"(more --extractor-slot-updates, or another --seed)")
 
     def progress(self) -> dict[str, float]:
         updates = self.learner.updates if self.learner is not None else 0

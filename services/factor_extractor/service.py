@@ -70,6 +70,8 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
                 served = True
                 log.info("slots frozen after %d updates: publishing slot transitions%s", core.learner.updates,
                          _identity_line(core.matching()))
+                if (warning := core.binding_warning()) is not None:
+                    log.warning(warning)
             metrics.ready.set(float(core.ready))
             _set_identity(metrics, core.matching())
             now = time.monotonic()
