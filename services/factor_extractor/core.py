@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causal.fg_ari import fg_ari
+from causal.fg_ari import BOUND_FG_ARI, fg_ari
 from causal.skild import object_graphs
 from causal.slot_extractor import FrameSlotLearner
 from causal.slot_identity import SlotIdentity, fit_identity, mask_targets, matching_accuracy
@@ -29,11 +29,6 @@ from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save
 
 SCALE_FLOOR = 1e-3
 """Smallest per-slot scale in the spec (a slot that never varies would otherwise divide by zero)."""
-
-UNBOUND_FG_ARI = 0.5
-"""Held-out FG-ARI below which the frozen slots are reported as not bound to objects: before binding,
-slot attention's FG-ARI sits near 0 for the first ~2,000 updates and then jumps past 0.8 within a few
-hundred (docs/results.md, 'How long the slots need')."""
 
 
 def slot_spec(env: EnvSpec, num_slots: int, slot_dim: int, locs: tuple[float, ...], scales: tuple[float, ...],
@@ -251,12 +246,12 @@ class FactorExtractorCore:
 
     def binding_warning(self) -> str | None:
         """Why the frozen slots should not be trusted, or None: a held-out FG-ARI below
-        :data:`UNBOUND_FG_ARI` means slot attention froze before it bound the objects, and a graph over
+        :data:`BOUND_FG_ARI` means slot attention froze before it bound the objects, and a graph over
         such slots is a graph over arbitrary image parts."""
-        fg_ari = self.identity_scores.get("fg_ari")
-        if fg_ari is None or fg_ari >= UNBOUND_FG_ARI:
+        score = self.identity_scores.get("fg_ari")
+        if score is None or score >= BOUND_FG_ARI:
             return None
-        return (f"the slots froze unbound: held-out FG-ARI {fg_ari:.3f} < {UNBOUND_FG_ARI} after "
+        return (f"the slots froze unbound: held-out FG-ARI {score:.3f} < {BOUND_FG_ARI} after "
                 f"{self.cfg.slot_updates} slot updates; a graph over them is not a graph over objects "
                 f"(more --extractor-slot-updates, or another --seed)")
 

@@ -4,12 +4,15 @@ From the extractor's last beat, under the contract's ``slots`` key: ``fg_ari`` (
 of held-out frames of its replay, no masks), ``identity_slot_accuracy`` / ``identity_frame_accuracy``
 (how often the identity head gave a slot the object its mask holds, per slot and with every slot of a
 frame right, on the same frames), ``published_identity_*`` (the same over every frame it published),
-and the slot budget (``slot_updates``, ``frames_trained_on``).
+the slot budget (``slot_updates``, ``frames_trained_on``), and ``bound``: whether the held-out FG-ARI
+reached :data:`causal.fg_ari.BOUND_FG_ARI` (false: the slots froze before slot attention bound the
+objects, and the run's graph is over image parts).
 """
 from __future__ import annotations
 
 from typing import Any
 
+from causal.fg_ari import BOUND_FG_ARI
 from proto.messages import ServiceStats
 
 SCORES = ("fg_ari", "identity_slot_accuracy", "identity_frame_accuracy", "published_identity_slot_accuracy",
@@ -24,4 +27,5 @@ def slot_facts(stats: ServiceStats | None) -> dict[str, Any]:
     return {"slots": {"evaluation": "factor-extractor: frozen slots, no masks; held-out frames of its replay "
                                     "(published_*: every frame it published)",
                       **{k: float(v[k]) for k in SCORES if k in v},
-                      **{k: int(v.get(k, 0)) for k in ("slot_updates", "frames_trained_on")}}}
+                      **{k: int(v.get(k, 0)) for k in ("slot_updates", "frames_trained_on")},
+                      **({"bound": bool(v["fg_ari"] >= BOUND_FG_ARI)} if "fg_ari" in v else {})}}

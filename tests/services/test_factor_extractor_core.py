@@ -183,6 +183,7 @@ def test_slots_frozen_before_they_bind_are_reported(tmp_path) -> None:
         core.train_step()
     assert core.ready and core.matching()["fg_ari"] < 0.5
     assert "froze unbound" in core.binding_warning() and "3 slot updates" in core.binding_warning()
+    assert slot_facts(ServiceStats("factor-extractor", "0", core.progress()))["slots"]["bound"] is False
 
 
 @pytest.mark.slow
@@ -199,4 +200,5 @@ def test_default_slot_budget_binds_the_objects(tmp_path) -> None:
         core.train_step()
     scores = core.matching()
     assert core.ready and core.binding_warning() is None
+    assert slot_facts(ServiceStats("factor-extractor", "0", core.progress()))["slots"]["bound"] is True
     assert scores["fg_ari"] >= 0.9 and scores["identity_slot_accuracy"] >= 0.9
