@@ -16,6 +16,14 @@ BOUND_FG_ARI = 0.5
 binds it passes 0.8 within a few hundred updates (docs/results.md, "How long the slots need")."""
 
 
+def mean_fg_ari(true_labels: np.ndarray, pred_labels: np.ndarray) -> float | None:
+    """Mean :func:`fg_ari` over the frames that have foreground (None if none has): frames without
+    foreground have no FG-ARI."""
+    per_frame = fg_ari(true_labels, pred_labels)
+    finite = per_frame[np.isfinite(per_frame)]
+    return float(finite.mean()) if len(finite) else None
+
+
 def adjusted_rand_index(true: np.ndarray, pred: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """ARI per row of ``true`` and ``pred`` (int ``[B, P]``), over the pixels where ``weights`` (bool
     ``[B, P]``, default all) is set; vectorised over the batch through one contingency table per row."""

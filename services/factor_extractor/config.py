@@ -22,7 +22,7 @@ class FactorExtractorConfig(ServiceConfig):
     ae_updates: int = doc(300, "phase 1: frame-autoencoder updates (then frozen)")
     ae_lr: float = doc(1e-3, "Adam learning rate of the frame autoencoder")
     slot_updates: int = doc(6000, "phase 2: slot updates, U of the mask-drop schedule; then the slots are frozen "
-                                  "and transitions are published (at 1,500 the slots of 3 seeds in 6 had not bound "
+                                  "and transitions are published (at 1,500 the slots of 2 seeds in 6 had not bound "
                                   "yet: docs/results.md, 'How long the slots need')")
     replay_frames: int = doc(8192, "frames kept for learning the slots (oldest dropped)")
     warmup_frames: int = doc(256, "frames to hold before the first update")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causal.fg_ari import BOUND_FG_ARI, fg_ari
+from causal.fg_ari import BOUND_FG_ARI, mean_fg_ari
 from causal.skild import object_graphs
 from causal.slot_extractor import FrameSlotLearner
 from causal.slot_identity import SlotIdentity, fit_identity, mask_targets, matching_accuracy
@@ -188,9 +188,8 @@ class FactorExtractorCore:
             self.identity, scores = fit_identity(slots, alpha, torch.from_numpy(labels), seed=self.cfg.seed)
             held_out = slice(int(scores["fit_frames"]), None)
             segments = self.learner.segment(torch.from_numpy(frames[held_out])).numpy()
-            per_frame = fg_ari(labels[held_out], segments)
-            finite = per_frame[np.isfinite(per_frame)]  # frames without foreground have no FG-ARI
-            self.identity_scores = {**scores, **({"fg_ari": float(finite.mean())} if len(finite) else {})}
+            score = mean_fg_ari(labels[held_out], segments)
+            self.identity_scores = {**scores, **({"fg_ari": score} if score is not None else {})}
             newest = slots[-min(self.cfg.statistics_frames, len(slots)):]  # already encoded: the statistics' frames
             slots = self.identity.order(newest)[0].numpy().astype(np.float64)
         else:
