@@ -31,7 +31,13 @@ class GraphEvaluatorConfig(ServiceConfig):
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "
                                 "eval_samples of them, so successive estimates see different episodes")
     min_heldout: int = doc(500, "held-out transitions needed before the first report")
-    eval_samples: int = doc(2_000, "held-out transitions used per evaluation")
+    eval_samples: int = doc(2_000, "held-out transitions used per evaluation (the first draw; see eval_samples_max)")
+    eval_samples_max: int = doc(16_000, "most held-out transitions per evaluation: when the graph has stayed the same "
+                                        "for eval_growth_reports reports with some entry still undecided, the draw "
+                                        "doubles, up to this (more data where it decides; at most eval_samples: never "
+                                        "grows); only for a method whose graph has standard errors")
+    eval_growth_reports: int = doc(3, "reports in a row with the same graph and an undecided entry before the "
+                                      "evaluation draw doubles")
     cmi_ema: float = doc(0.999, "weight of the previous edge-score estimate per learner update since it "
                          "(the reference's EMA): an evaluation k updates later keeps cmi_ema**k of it")
     min_interval_s: float = doc(2.0, "minimum seconds between evaluations")
@@ -48,6 +54,9 @@ class GraphEvaluatorConfig(ServiceConfig):
             raise ValueError(f"cmi_ema must be in [0, 1), got {self.cmi_ema}")
         if self.eval_samples <= 0 or self.min_heldout < 1 or self.heldout_capacity < self.min_heldout:
             raise ValueError("eval_samples and min_heldout must be positive and heldout_capacity >= min_heldout")
+        if self.eval_samples_max < 0 or self.eval_growth_reports < 1:
+            raise ValueError(f"eval_samples_max must be >= 0 and eval_growth_reports >= 1, got "
+                             f"{self.eval_samples_max}, {self.eval_growth_reports}")
         if not 0.0 < self.fdr < 1.0 or not 0.0 <= self.min_cmi < float("inf"):
             raise ValueError(f"fdr must be in (0, 1) and min_cmi finite and >= 0, got {self.fdr}, {self.min_cmi}")
         if self.local_capacity < 1 or self.local_samples < 1 or not 0 <= self.local_examples <= 64:

@@ -37,6 +37,41 @@ def constant_factor_indices(spec: EnvSpec) -> tuple[int, ...]:
     return tuple(spec.factor_names.index(name) for name in (entry.constant_factors if entry else ()))
 
 
+class EvaluationDraw:
+    """How many held-out transitions each evaluation draws (issue 22, item 3: more data where it decides).
+
+    It starts at ``base``. When the graph has stayed the same for ``reports`` reports in a row while
+    some entry is still undecided (its interval straddles the rule's boundary), the draw doubles, up to
+    ``most``, and the count starts again at the new size. A stable graph with undecided entries is a
+    graph the learner has settled but the evaluation's sampling error has not: a weak edge's standard
+    error falls as 1 / sqrt(draw), so more data is what decides it. The draw never shrinks: once the
+    graph needed it, a smaller one would bring the undecided entries back and undo the stop rule's
+    count. A graph that keeps changing does not grow the draw (the model, not the data, moves it)."""
+
+    def __init__(self, base: int, most: int, reports: int) -> None:
+        self.base, self.most, self.reports = base, max(base, most), reports
+        self.size = base
+        self.count = 0
+        self._graph = b""
+
+    def observe(self, graph: bytes, undecided: int) -> bool:
+        """Count one report (its graph's bytes, its undecided entries); whether the draw grew."""
+        if graph == self._graph:
+            self.count += 1
+        else:
+            self._graph, self.count = graph, 1
+        if undecided and self.count >= self.reports and self.size < self.most:
+            self.size, self.count = min(2 * self.size, self.most), 0
+            return True
+        return False
+
+    def state_dict(self) -> dict[str, int]:
+        return {"size": self.size}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.size = min(max(int(state["size"]), self.base), self.most)
+
+
 class GraphEvaluatorCore:
     """Turns dynamics weights into GraphReports scored against the EnvSpec's ground truth, with the
     global-graph estimator of the run's method (``cfg.method``)."""
@@ -83,6 +118,10 @@ class GraphEvaluatorCore:
         self.reward_stderr_ema: np.ndarray | None = None
         """Standard errors of ``reward_ema`` (a reward estimator that has them: CBM's)."""
         self.history: list[dict[str, float]] = []
+        self.draw = EvaluationDraw(cfg.eval_samples, cfg.eval_samples_max if has_standard_errors(self.method) else 0,
+                                   cfg.eval_growth_reports)
+        """Held-out transitions per evaluation: ``eval_samples``, doubled while a settled graph has
+        undecided entries (only where the graph has standard errors to be undecided)."""
 
     def ingest(self, batch: TransitionBatch) -> int:
         """Keep the held-out episodes of ``batch`` (ProtocolError if it does not fit the EnvSpec)."""
@@ -178,7 +217,7 @@ class GraphEvaluatorCore:
         correlation, and successive estimates are correlated (overlapping draws, similar models): the
         running standard error is an upper bound, never the smaller one independence would claim."""
         assert self.model is not None and self.weights is not None
-        n = min(self.cfg.eval_samples, self.heldout.size)
+        n = min(self.draw.size, self.heldout.size)
         index = self.heldout.rng.choice(self.heldout.size, n, replace=False)
         s, a, nxt, r = (torch.from_numpy(x[: self.heldout.size][index]) for x in
                         (self.heldout.state, self.heldout.action, self.heldout.next_state, self.heldout.reward))
@@ -188,7 +227,13 @@ class GraphEvaluatorCore:
             old = getattr(self, name)
             setattr(self, name, value if old is None or value is None else alpha * old + (1 - alpha) * value)
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
-        return self.report(n)
+        report = self.report(n)
+        if report.undecided is not None:
+            graph = report.adjacency.tobytes() + (b"" if report.reward_parents is None else report.reward_parents.tobytes())
+            undecided = int(report.undecided.sum()) + (0 if report.reward_undecided is None
+                                                       else int(report.reward_undecided.sum()))
+            self.draw.observe(graph, undecided)
+        return report
 
     def evaluate_final(self) -> GraphReport:
         """Algorithm 1, line 8: after training, the graph of the newest weights from CMI on every
@@ -292,6 +337,7 @@ class GraphEvaluatorCore:
                 state[name] = torch.from_numpy(getattr(self, name))
         if self.local is not None:
             state["local"] = self.local.state_dict()
+        state["draw"] = self.draw.state_dict()
         save_checkpoint(state, path)
 
     def restore(self, path: Path) -> bool:
@@ -310,4 +356,6 @@ class GraphEvaluatorCore:
                 setattr(self, name, saved[name].numpy())
         if self.local is not None and "local" in saved:
             self.local.load_state_dict(saved["local"])
+        if "draw" in saved:
+            self.draw.load_state_dict(saved["draw"])
         return True

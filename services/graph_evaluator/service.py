@@ -31,6 +31,8 @@ class _Metrics:
         self.classes = m.gauge("causeway_abstraction_factors", "Factors per abstraction class", ("class",))
         self.reports = m.counter("causeway_graph_reports", "GraphReports published")
         self.heldout = m.gauge("causeway_heldout_transitions", "Held-out transitions available for CMI")
+        self.drawn = m.gauge("causeway_graph_eval_transitions",
+                             "Held-out transitions the last evaluation drew (grows while a settled graph has undecided entries)")
         self.version = m.gauge("causeway_graph_weights_version", "Weights version of the last report")
         self.env_steps = m.gauge("causeway_graph_env_steps", "Env steps behind the last report")
         self.eval_seconds = m.histogram("causeway_graph_eval_seconds", "Duration of one all-pairs edge-score evaluation",
@@ -99,9 +101,14 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
             metrics.heldout.set(core.heldout.size)
             now = time.monotonic()
             if not shell.paused and core.due and now - last_eval >= cfg.min_interval_s:
-                t0 = time.perf_counter()
+                t0, draw = time.perf_counter(), core.draw.size
                 report = core.evaluate()
                 metrics.eval_seconds.observe(time.perf_counter() - t0)
+                metrics.drawn.set(report.num_heldout)
+                if core.draw.size > draw:
+                    log.info("graph unchanged for %d reports with %d undecided entries: the evaluation draw grows "
+                             "from %d to %d held-out transitions", cfg.eval_growth_reports,
+                             int(report.undecided.sum()), draw, core.draw.size)
                 latest_graph.set(encode(report))
                 metrics.observe(report)
                 last_eval = now
