@@ -57,6 +57,12 @@ def test_shipped_random10_is_reproducible_and_not_a_named_graph() -> None:
     assert dag.topological_order() != tuple(range(10))
 
 
+@pytest.mark.parametrize(("name", "edges", "seed"), [("random5-6-1.json", 6, 1), ("random5-8-2.json", 8, 2)])
+def test_shipped_five_object_dags_are_the_benchmarks_random_graphs(name: str, edges: int, seed: int) -> None:
+    """The files ``causeway run --graph`` takes for ``benchmarks.fdr_graphs``' ``random:5:<edges>:<seed>``."""
+    assert load_dag(DAGS_DIR / name, 5) == random_dag(5, edges, seed=seed)
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [
