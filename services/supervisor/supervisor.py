@@ -263,7 +263,8 @@ class Supervisor:
             self.last_report = report
             undecided = {} if report.undecided is None else {"undecided_entries": int(report.undecided.sum())}
             self.history.append({"time": time.monotonic() - self.progress.started, "env_steps": report.env_steps,
-                                 "updates": report.updates, **report.metrics, **undecided})
+                                 "updates": report.updates, "num_heldout": report.num_heldout,
+                                 **report.metrics, **undecided})
         self.progress.on_report(report)
 
     def _on_local(self, key: str, payload: bytes) -> None:
