@@ -32,7 +32,7 @@ from scipy.optimize import linear_sum_assignment
 from torch import nn
 
 from causal.factored import FactorLayout
-from causal.fg_ari import fg_ari
+from causal.fg_ari import mean_fg_ari
 from causal.method import layout_from_config, model_config_json
 from causal.slot_world_model import SlotWorldModel, WorldModelConfig
 from causal.slots import MASK_PRIORS, SlotConfig, SlotModel, SlotTrainer, frames_to_tensor
@@ -221,7 +221,7 @@ class SlotScores:
         model.eval()
         segments = torch.cat([model.slots.segment(torch.from_numpy(frames[i : i + 128]))
                               for i in range(0, len(frames), 128)])
-        return {"fg_ari": float(np.nanmean(fg_ari(labels, segments.numpy()))), "frames": self.frames,
+        return {"fg_ari": mean_fg_ari(labels, segments.numpy()), "frames": self.frames,
                 "frame_size": model.config.frame_size, "num_slots": model.slots.config.num_slots,
                 "env": spec.env_id, "settings": asdict(model.config),
                 "evaluation": "final model, FG-ARI over foreground pixels of frames of unseen states, no masks "
