@@ -65,7 +65,7 @@ EVALUATOR_METRICS = {
     "causeway_local_graph_roc_auc_ratio", "causeway_local_graph_pr_auc_ratio", "causeway_local_graph_best_f1_ratio",
     "causeway_local_graph_f1_ratio", "causeway_local_graph_positive_rate_ratio", "causeway_local_graph_reports_total",
     "causeway_local_graph_heldout_transitions", "causeway_local_graph_eval_seconds",
-    "causeway_graph_undecided_entries",
+    "causeway_graph_undecided_entries", "causeway_graph_eval_transitions",
     "causeway_induced_graph_batches_total", "causeway_induced_graph_batches_skipped_total",
 }
 HISTOGRAMS = {"causeway_publish_seconds", "causeway_update_seconds", "causeway_graph_eval_seconds",
