@@ -29,6 +29,8 @@ from torch import nn
 from proto.settings import doc
 
 MASK_PRIORS = ("annealed", "none", "always")
+TOKEN_MASKS = ("touch", "objects")
+"""How a label map becomes the mask prior's allowed slots per token (:func:`token_masks`)."""
 FEATURE_STRIDE = 4
 """Pixels per feature token along each side (the frame autoencoder halves the resolution twice)."""
 
@@ -48,6 +50,9 @@ class SlotConfig:
     batch_size: int = doc(32, "frames per update")
     mask_prior: str = doc("annealed", "annealed: drop the masks with probability log(1+u)/log(1+U); "
                                       "none: never use them (SOLV); always: always (the oracle)", choices=MASK_PRIORS)
+    token_mask: str = doc("touch", "which slots a token may take under the masks: touch (every segment with a pixel "
+                                   "in it, the background's included) or objects (the objects with a pixel in it; "
+                                   "the background slot only tokens no object touches)", choices=TOKEN_MASKS)
 
     def __post_init__(self) -> None:
         if min(self.num_slots, self.feature_dim, self.slot_dim, self.attention_dim, self.iterations,
@@ -55,6 +60,8 @@ class SlotConfig:
             raise ValueError("slot sizes, iterations, batch size and lr must be positive")
         if self.mask_prior not in MASK_PRIORS:
             raise ValueError(f"mask_prior must be one of {MASK_PRIORS}, got {self.mask_prior!r}")
+        if self.token_mask not in TOKEN_MASKS:
+            raise ValueError(f"token_mask must be one of {TOKEN_MASKS}, got {self.token_mask!r}")
 
 
 def drop_probability(updates_done: int, total_updates: int) -> float:
@@ -67,13 +74,24 @@ def frames_to_tensor(frames: torch.Tensor) -> torch.Tensor:
     return frames.permute(0, 3, 1, 2).float() / 255.0
 
 
-def token_masks(labels: torch.Tensor, num_slots: int, stride: int = FEATURE_STRIDE) -> torch.Tensor:
-    """bool ``[B, K, n]``: which feature tokens (``stride`` x ``stride`` pixel blocks) segment ``k`` of the
-    label maps ``[B, H, W]`` touches. Every token touches some segment, so each has an allowed slot."""
+def token_masks(labels: torch.Tensor, num_slots: int, stride: int = FEATURE_STRIDE, rule: str = "touch") -> torch.Tensor:
+    """bool ``[B, K, n]``: which slots each feature token (a ``stride`` x ``stride`` pixel block) of the
+    label maps ``[B, H, W]`` (0 the background, ``k`` object ``k - 1``) may go to.
+
+    ``touch``: every segment with a pixel in the token. ``objects``: the objects with a pixel in it,
+    the background only where no object has one. Objects smaller than a token (the sprite game's fish
+    at 32x32) share nearly every token they touch with the background, which under ``touch`` takes
+    them (it holds most of the token's pixels); under ``objects`` the object keeps them. Either way
+    every token has an allowed slot."""
+    if rule not in TOKEN_MASKS:
+        raise ValueError(f"rule must be one of {TOKEN_MASKS}, got {rule!r}")
     if int(labels.max()) >= num_slots:
         raise ValueError(f"labels up to {int(labels.max())} need more than {num_slots} slots")
     onehot = F.one_hot(labels.long(), num_slots).permute(0, 3, 1, 2).float()
-    return (F.avg_pool2d(onehot, stride) > 0).flatten(2)
+    allowed = (F.avg_pool2d(onehot, stride) > 0).flatten(2)
+    if rule == "objects":
+        allowed[:, 0] &= ~allowed[:, 1:].any(dim=1)
+    return allowed
 
 
 class FrameAutoencoder(nn.Module):
@@ -211,7 +229,7 @@ class SlotTrainer:
         """This update's attention masks: each frame's own, or all-allowed where the prior is dropped."""
         if self.config.mask_prior == "none":
             return None
-        allowed = token_masks(labels, self.config.num_slots)
+        allowed = token_masks(labels, self.config.num_slots, rule=self.config.token_mask)
         if self.config.mask_prior == "always":
             return allowed
         dropped = torch.rand(len(labels), generator=self.generator) < drop_probability(self.updates, self.total_updates)

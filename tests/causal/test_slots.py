@@ -52,6 +52,25 @@ def test_token_masks_cover_every_token_and_mark_each_segment() -> None:
         token_masks(labels, num_slots=2, stride=4)
 
 
+def test_objects_rule_gives_a_token_an_object_touches_to_its_objects_only() -> None:
+    labels = torch.zeros(1, 8, 8, dtype=torch.long)
+    labels[0, :4, :4] = 1  # fills the top-left token
+    labels[0, 5, 6] = 2  # one pixel of the bottom-right token, the rest background
+    labels[0, 1, 5] = 1  # one pixel of object 1 and one of object 2 in the top-right token
+    labels[0, 2, 6] = 2
+    allowed = token_masks(labels, num_slots=3, stride=4, rule="objects").view(1, 3, 2, 2)
+    assert allowed.any(dim=1).all()
+    assert allowed[0, 0].tolist() == [[False, False], [True, False]]  # the background: the untouched token only
+    assert allowed[0, 1].tolist() == [[True, True], [False, False]]
+    assert allowed[0, 2].tolist() == [[False, True], [False, True]]
+    touch = token_masks(labels, num_slots=3, stride=4).view(1, 3, 2, 2)
+    assert torch.equal(touch[0, 1:], allowed[0, 1:]) and touch[0, 0].tolist() == [[False, True], [True, True]]
+    with pytest.raises(ValueError, match="rule"):
+        token_masks(labels, num_slots=3, stride=4, rule="majority")
+    with pytest.raises(ValueError, match="token_mask"):
+        SlotConfig(token_mask="majority")
+
+
 def test_slot_attention_respects_the_mask_prior_and_is_batched() -> None:
     torch.manual_seed(0)
     attention = SlotAttention(8, SMALL)
