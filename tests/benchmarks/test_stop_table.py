@@ -14,7 +14,10 @@ def _summary(run: Path, stopped_because: str, f1: float, oracle: float, **extra:
     summary = {"env": "chemical", "env_options": {"graph": "envs/dags/random5-6-1.json", "num_objects": 5},
                "seed": 1, "edge_rule": "fdr", "fdr": 0.05, "bias": "fixed", "min_cmi": 0.005,
                "stopped_because": stopped_because, "wall_seconds": 151.3, "updates": 10_580, "num_heldout": 16_000,
-               "undecided_entries": 0, "f1": f1, "precision": 1.0, "recall": f1, "best_threshold_f1": oracle, **extra}
+               "undecided_entries": 0, "f1": f1, "precision": 1.0, "recall": f1, "best_threshold_f1": oracle,
+               # a weak true edge (0 <- 1) at 0.01 nats, below the fixed 0.02; the other true edge strong
+               "true_graph": [[1, 1, 0, 0], [0, 1, 1, 0], [0, 0, 1, 0]],
+               "cmi": [[0.5, 0.01, 0.001, 0.0], [0.0, 0.5, 0.3, 0.001], [0.002, 0.0, 0.5, 0.0]], **extra}
     (run / "summary.json").write_text(json.dumps(summary))
     return run
 
@@ -27,6 +30,7 @@ def test_rows_tell_the_rule_from_a_budget_and_the_oracle(tmp_path, capsys) -> No
     assert first["stopped"] and not second["stopped"]
     assert first["graph"] == "random5-6-1, 5 objects" and first["rule"] == "fdr (0.05, 0.005)"
     assert second["rule"] == "fdr (0.05, split)" and second["undecided"] == 2
+    assert first["fixed_f1"] == pytest.approx(2 / 3)  # at 0.02: one of the two true edges, no false one
     (same_rule,) = by_graph([first, row(_summary(tmp_path / "c", "time budget 420s reached", 0.9, 0.952))])
     assert same_rule["runs"] == 2 and same_rule["stopped"] == 1 and same_rule["at_oracle"] == 1
     assert same_rule["f1"] == pytest.approx(0.95)
