@@ -2,7 +2,8 @@
 it stopped at.
 
 Reads the ``summary.json`` of runs made with ``--stable-reports`` (and an fdr or fixed edge rule) and
-prints one row per run: the graph, seed, rule, whether the stable-graph rule stopped it or a budget
+prints one row per run: the graph, seed, rule (marked where the run's ``config.json`` kept the evaluator's
+draw fixed), whether the stable-graph rule stopped it or a budget
 did, its wall time and updates, the draw of held-out transitions its last report was estimated on
 (the evaluator doubles it while a settled graph has undecided entries), that report's undecided
 entries and its F1 / precision / recall, with the best-threshold F1 (the oracle, which needs the true
@@ -36,6 +37,10 @@ def row(run_dir: Path) -> dict[str, Any]:
     rule = s.get("edge_rule", "fixed")
     if rule == "fdr":
         rule = f"fdr ({s['fdr']:g}, {s['bias'] if s.get('bias', 'fixed') != 'fixed' else format(s['min_cmi'], 'g')})"
+    config = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").is_file() else {}
+    evaluator = config.get("evaluator", {})
+    if "eval_samples" in evaluator and evaluator.get("eval_samples_max", 0) <= evaluator["eval_samples"]:
+        rule += f", draw fixed at {evaluator['eval_samples']:,}"  # the evaluator's draw may not grow
     return {"run": run_dir.name, "graph": f"{Path(str(options.get('graph', s['env']))).stem}, "
                                           f"{options.get('num_objects', '?')} objects",
             "seed": s.get("seed", 0), "rule": rule, "stopped": s["stopped_because"].startswith(STABLE),

@@ -31,6 +31,8 @@ def test_rows_tell_the_rule_from_a_budget_and_the_oracle(tmp_path, capsys) -> No
     assert first["graph"] == "random5-6-1, 5 objects" and first["rule"] == "fdr (0.05, 0.005)"
     assert second["rule"] == "fdr (0.05, split)" and second["undecided"] == 2
     assert first["fixed_f1"] == pytest.approx(2 / 3)  # at 0.02: one of the two true edges, no false one
+    (budget / "config.json").write_text(json.dumps({"evaluator": {"eval_samples": 2000, "eval_samples_max": 0}}))
+    assert row(budget)["rule"] == "fdr (0.05, split), draw fixed at 2,000"
     (same_rule,) = by_graph([first, row(_summary(tmp_path / "c", "time budget 420s reached", 0.9, 0.952))])
     assert same_rule["runs"] == 2 and same_rule["stopped"] == 1 and same_rule["at_oracle"] == 1
     assert same_rule["f1"] == pytest.approx(0.95)
