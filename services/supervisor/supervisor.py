@@ -260,6 +260,8 @@ class Supervisor:
         if not fresh:  # a repeat or an older version: the history has it, or never will
             return
         with self._lock:
+            if self._stop.is_set():  # the run has stopped: the summary is the graph it stopped on, not a later one
+                return
             self.last_report = report
             undecided = {} if report.undecided is None else {"undecided_entries": int(report.undecided.sum())}
             self.history.append({"time": time.monotonic() - self.progress.started, "env_steps": report.env_steps,
@@ -313,11 +315,17 @@ class Supervisor:
         self._stop.set()
 
     def _check_budget(self, elapsed: float) -> None:
+        """Stop when a rule says so, on the report it judged: one that came in meanwhile is dropped
+        (with its history entry), so the summary shows the graph the rule stopped on (a stable graph
+        with nothing undecided, say), not a newer one it never saw."""
         with self._lock:
-            report = self.last_report
+            report, seen = self.last_report, len(self.history)
         reason = self.stop_rules.check(elapsed, report, self.progress.env_steps())
         if reason:
-            self.request_stop(reason)
+            with self._lock:
+                self.last_report = report
+                del self.history[seen:]
+                self.request_stop(reason)
 
     def _pause_workers(self) -> None:
         self.bus.publish(topics.control(self.cfg.run_id, "env-worker"), encode(Control("pause", issued_at=time.time())))

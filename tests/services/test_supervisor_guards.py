@@ -189,3 +189,47 @@ def test_stats_beats_of_processes_the_run_did_not_start_do_not_count(tmp_path) -
         sup._on_stats(f"causeway/{sup.cfg.run_id}/stats/{service}/{instance}", encode(ServiceStats(service, instance, values)))
     assert sup.progress.env_steps() == 300 and sup.progress.updates() == 5
     assert set(sup.progress.stats) == {("env-worker", "0"), ("dynamics-learner", "0")}
+
+
+def test_the_summary_keeps_the_report_the_stop_rule_judged(tmp_path) -> None:
+    """Seen in a stop-rule run: the rule stopped on a stable graph with nothing undecided, one more
+    report (a changed graph, 2 entries undecided) came in before the summary, and the summary showed
+    it beside "no undecided entry". Reports arriving while the rule decides, or after, are dropped."""
+    import dataclasses
+
+    import numpy as np
+
+    from proto.codec import encode
+    from proto.messages import GraphReport
+    from services.supervisor.supervisor import Supervisor
+
+    sup = Supervisor(build_config(RunConfig, router_port=7447, run_dir=str(tmp_path), progress=False, stable_reports=2,
+                                  evaluator_edge_rule="fdr"))
+    n = 3
+    settled = GraphReport(kind="cdl", weights_version=1, env_steps=100, updates=10, factor_names=("a", "b", "c"),
+                          cmi=np.zeros((n, n + 1), np.float32), adjacency=np.eye(n, n + 1, dtype=np.uint8),
+                          threshold=0.02, controllable=(), action_relevant=(), action_irrelevant=(),
+                          metrics={"f1": 1.0}, timestamp=1.0, undecided=np.zeros((n, n + 1), np.uint8),
+                          cmi_stderr=np.full((n, n + 1), 1e-3, np.float32), edge_rule="fdr", fdr=0.05, min_cmi=5e-3)
+    changed = dataclasses.replace(settled, weights_version=3, timestamp=3.0, adjacency=np.ones((n, n + 1), np.uint8),
+                                  metrics={"f1": 0.5}, undecided=np.ones((n, n + 1), np.uint8))
+    key = "causeway/run/graph/cdl"
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "dynamics-learner-0.version.json").write_text('{"version": 10}')
+    sup._on_graph(key, encode(settled))
+    sup._check_budget(1.0)
+    assert not sup.stop_reason
+    sup._on_graph(key, encode(dataclasses.replace(settled, weights_version=2, timestamp=2.0)))
+    judge = sup.stop_rules.check
+
+    def arrives_meanwhile(*args):  # the real rule; the newer report lands while it decides
+        reason = judge(*args)
+        sup._on_graph(key, encode(changed))
+        return reason
+
+    sup.stop_rules.check = arrives_meanwhile
+    sup._check_budget(2.0)
+    assert sup.stop_reason.startswith("graph stable")
+    assert sup.last_report.weights_version == 2 and [h["f1"] for h in sup.history] == [1.0, 1.0]
+    sup._on_graph(key, encode(dataclasses.replace(changed, weights_version=4, timestamp=4.0)))  # after the stop
+    assert sup.last_report.weights_version == 2 and len(sup.history) == 2
