@@ -245,6 +245,17 @@ class GraphReport:
     reward_undecided: np.ndarray | None = None
     """uint8 [d_S + 1]: reward entries the data cannot yet decide, with ``reward_stderr``"""
 
+    def decided_graph(self) -> bytes:
+        """The graph as decided (adjacency and, with a reward graph, the reward's parents), as bytes to
+        compare reports by: the stop rule's and the evaluator's "same graph"."""
+        return self.adjacency.tobytes() + (b"" if self.reward_parents is None else self.reward_parents.tobytes())
+
+    def undecided_count(self) -> int | None:
+        """Undecided entries of both graphs (None without standard errors: nothing can be undecided)."""
+        if self.undecided is None:
+            return None
+        return int(self.undecided.sum()) + (0 if self.reward_undecided is None else int(self.reward_undecided.sum()))
+
 
 @dataclass(frozen=True)
 class LocalGraphReport:

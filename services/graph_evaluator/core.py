@@ -228,11 +228,8 @@ class GraphEvaluatorCore:
             setattr(self, name, value if old is None or value is None else alpha * old + (1 - alpha) * value)
         self.evaluated_version, self.evaluated_updates = self.weights.version, self.weights.updates
         report = self.report(n)
-        if report.undecided is not None:
-            graph = report.adjacency.tobytes() + (b"" if report.reward_parents is None else report.reward_parents.tobytes())
-            undecided = int(report.undecided.sum()) + (0 if report.reward_undecided is None
-                                                       else int(report.reward_undecided.sum()))
-            self.draw.observe(graph, undecided)
+        if (undecided := report.undecided_count()) is not None:
+            self.draw.observe(report.decided_graph(), undecided)
         return report
 
     def evaluate_final(self) -> GraphReport:

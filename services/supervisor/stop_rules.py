@@ -17,8 +17,6 @@ from __future__ import annotations
 import logging
 from typing import Callable
 
-import numpy as np
-
 from proto.messages import GraphReport
 from services.supervisor.config import RunConfig
 
@@ -52,7 +50,7 @@ class StableGraph:
         if not (self.reports or self.seconds) or report is None or (report.weights_version, report.timestamp) == self._last:
             return
         self._last = (report.weights_version, report.timestamp)
-        graph = report.adjacency.tobytes() + (b"" if report.reward_parents is None else report.reward_parents.tobytes())
+        graph = report.decided_graph()
         if graph == self._graph:
             self.count += 1
         else:
@@ -64,8 +62,7 @@ class StableGraph:
         if not (self.reports or self.seconds) or report is None or report.undecided is None:
             return ""
         settled = self.count >= self.reports and elapsed - self.since >= self.seconds
-        reward_open = report.reward_undecided is not None and np.any(report.reward_undecided)
-        if not settled or np.any(report.undecided) or reward_open:  # CBM: the reward's parents decided too
+        if not settled or report.undecided_count():  # CBM: the reward's parents decided too
             return ""
         return (f"graph stable: unchanged for {self.count} reports ({elapsed - self.since:.0f}s), "
                 f"no undecided entry ({report.edge_rule} rule)")
