@@ -15,6 +15,11 @@ What each side does in one update (batch 64, one thread, Chemical ``full``):
 * Causeway at the reference widths: feature networks, features and heads 64 wide; causal term every 10th.
 * Causeway like for like: the reference widths with the causal term on every update: the work of the
   authors' 1-step update (same widths, one step, every term every update).
+* The same two with ``train_precision="bf16"``: the same work with the matrix products in bfloat16
+  (weights, aggregation, losses and Adam in fp32; ``CDLConfig.train_precision``). Not the authors'
+  arithmetic, so its ratio to their code is printed apart, beside its ratio to the fp32 setting of
+  this run. It pays on CPUs with AVX512-BF16 (this machine's AMD EPYC has it); elsewhere bf16 products
+  are emulated and can be slower than fp32.
 
 Causeway's causal term uses Chemical ``full``'s true graph as its parents (``--parents true``, what a
 trained run's evaluator gives it): the heads run only on the rows whose dropped or causal aggregate
@@ -31,7 +36,7 @@ terms and measures what the batching alone buys, at ``--width``.
 
     python -m benchmarks.bench_cdl_update [--objects 5] [--batch 64] [--width 64] [--updates 20] [--device cpu]
         [--parents true|all]
-    python -m benchmarks.bench_cdl_update --objects 10 --profile    # where a like-for-like update's time goes
+    python -m benchmarks.bench_cdl_update --objects 10 --profile [--precision bf16]   # where a like-for-like update's time goes
 """
 from __future__ import annotations
 
@@ -52,7 +57,9 @@ AUTHORS_SECONDS_PER_UPDATE = {5: {"defaults": 0.150, "one_step": 0.079}, 10: {"d
 """The authors' code, seconds per update at batch 64 on one thread, idle machine, median of 3 runs (issue 26)."""
 REFERENCE_WIDTHS = dict(feature_hidden=64, feature_dim=64, predictor_hidden=64)
 SETTINGS = {"defaults": CDLConfig(), "reference widths": CDLConfig(**REFERENCE_WIDTHS),
-            "like for like": CDLConfig(**REFERENCE_WIDTHS, causal_every=1)}
+            "like for like": CDLConfig(**REFERENCE_WIDTHS, causal_every=1),
+            "defaults, bf16": CDLConfig(train_precision="bf16"),
+            "like for like, bf16": CDLConfig(**REFERENCE_WIDTHS, causal_every=1, train_precision="bf16")}
 """Causeway's trainer settings timed (see the module's docstring for the work each does)."""
 
 
@@ -149,11 +156,11 @@ def trainer_seconds(layout: FactorLayout, cfg: CDLConfig, batch: tuple[torch.Ten
 
 
 def profile_like_for_like(layout: FactorLayout, batch: tuple[torch.Tensor, ...], parents: np.ndarray | None,
-                          updates: int = 10) -> None:
+                          updates: int = 10, setting: str = "like for like") -> None:
     """Where a like-for-like update spends its time: torch's operator profile, by self CPU time."""
     from torch.profiler import ProfilerActivity, profile
 
-    trainer = CDLTrainer(layout, SETTINGS["like for like"], seed=0)
+    trainer = CDLTrainer(layout, SETTINGS[setting], seed=0)
     if parents is not None:
         trainer.set_parents(parents)
     for _ in range(3):
@@ -179,6 +186,7 @@ def main() -> None:
     p.add_argument("--device", default="cpu", help="where Causeway's trainer runs (cpu, cuda)")
     p.add_argument("--no-loop", action="store_true", help="skip the per-factor loop baseline")
     p.add_argument("--profile", action="store_true", help="only print torch's operator profile of 10 like-for-like updates")
+    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="--profile: the products' precision")
     p.add_argument("--parents", choices=["true", "all"], default="true",
                    help="the causal term's parents: Chemical full's true graph (a trained run's; default) or every "
                         "input (a fresh trainer's, where the causal aggregate is the full one and costs nothing)")
@@ -188,7 +196,7 @@ def main() -> None:
     layout, batch = chemical_batch(args.objects, args.batch)
     parents = true_parents(args.objects) if args.parents == "true" else None
     if args.profile:
-        profile_like_for_like(layout, batch, parents)
+        profile_like_for_like(layout, batch, parents, setting="like for like" + (", bf16" if args.precision == "bf16" else ""))
         return
     model = CDLModel(layout, CDLConfig(feature_hidden=args.width, feature_dim=args.width, predictor_hidden=args.width))
     print(f"CDL update, {args.objects} objects ({model.num_outputs} factors), batch {args.batch}, 1 thread, "
@@ -208,7 +216,7 @@ def main() -> None:
                 for name, cfg in SETTINGS.items()}
     print("  CDLTrainer.update (eq. 3.3, clipping, fused Adam), median of rounds:")
     for name, seconds in measured.items():
-        print(f"    Causeway, {name:<17}: {seconds * 1000:8.1f} ms/update")
+        print(f"    Causeway, {name:<21}: {seconds * 1000:8.1f} ms/update")
     authors = AUTHORS_SECONDS_PER_UPDATE.get(args.objects)
     if authors is None:
         print(f"  the authors' code was timed at {sorted(AUTHORS_SECONDS_PER_UPDATE)} objects only: no ratio")
@@ -224,6 +232,10 @@ def main() -> None:
               "like for like (1-step, every term)": authors["one_step"] / measured["like for like"]}
     for name, ratio in ratios.items():
         print(f"    speed-up, {name:<35}: {ratio:6.1f}x")
+    print("  bf16 products (not the authors' arithmetic; CDLConfig.train_precision):")
+    for name in ("defaults", "like for like"):
+        print(f"    {name + ', bf16':<22}: {measured[name] / measured[name + ', bf16']:5.2f}x the fp32 setting of this run, "
+              f"{authors['defaults' if name == 'defaults' else 'one_step'] / measured[name + ', bf16']:5.1f}x the authors' code")
 
 
 if __name__ == "__main__":

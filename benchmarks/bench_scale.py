@@ -12,6 +12,7 @@ time at the largest size.
 
     python -m benchmarks.bench_scale [--sizes 5 10 20 40] [--graphs full random] [--budget 300]
         [--out benchmark-results/scale] [--profile] [--eval 2000] [--heldout 20000] [--device cpu]
+        [--precision fp32|bf16] [--seed 0]
     python -m benchmarks.bench_scale --rows ROWS.jsonl [...]   # the table and plot of rows measured earlier
 
 Timings are of this 2-core machine with one torch thread; the exponents, not the seconds, are the
@@ -75,17 +76,18 @@ def timed(fn, repeats: int, device: torch.device = torch.device("cpu")) -> tuple
 
 
 def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: int = HELD_OUT,
-             evaluation: int = EVAL, device: str = "cpu") -> dict[str, Any]:
+             evaluation: int = EVAL, device: str = "cpu", precision: str = "fp32") -> dict[str, Any]:
     """Every figure of one (graph, size); run in its own process. ``evaluation`` transitions per CMI
     evaluation (2,000 as the evaluator's), ``heldout`` for the final graph (20,000); the model and the
-    data on ``device`` (on cuda the wall-clock seconds are the figures, and the GPU's peak memory too)."""
+    data on ``device`` (on cuda the wall-clock seconds are the figures, and the GPU's peak memory too);
+    ``precision`` the training update's products (``CDLConfig.train_precision``; CMI is fp32 always)."""
     torch.set_num_threads(1)
     where = torch.device(device)
     env = make_env(graph, objects)
     layout = FactorLayout.from_spec(env.env_spec())
     train, held = collect(graph, objects, TRANSITIONS, seed)
     train, held = (tuple(x.to(where) for x in part) for part in (train, tuple(x[:heldout] for x in held)))
-    trainer = CDLTrainer(layout, CDLConfig(), seed=seed)
+    trainer = CDLTrainer(layout, CDLConfig(train_precision=precision), seed=seed)
     trainer.to(where)
     rng = np.random.default_rng(seed)
     draws = 0
@@ -103,6 +105,7 @@ def one_size(graph: str, objects: int, budget: float, seed: int = 0, heldout: in
 
     timed(update, 3, where)  # warm-up
     out: dict[str, Any] = {"graph": graph, "objects": objects, "factors": layout.num_factors, "device": device,
+                           "precision": precision, "seed": seed,
                            "parameters": sum(p.numel() for p in trainer.model.parameters()),
                            "cmi_samples": evaluation, "final_samples": len(held[0])}
     sample = tuple(x[:evaluation] for x in held)
@@ -209,13 +212,16 @@ def main(argv: list[str] | None = None) -> None:
                    "the F1 checks); fewer for a quick run on a loaded machine")
     p.add_argument("--heldout", type=int, default=HELD_OUT, help="held-out transitions of the final graph")
     p.add_argument("--device", default="cpu", help="where the model and the data are (cpu, cuda)")
+    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
+                   help="the training update's matrix products (CDLConfig.train_precision)")
+    p.add_argument("--seed", type=int, default=0, help="data, model and time-to-F1 seed")
     p.add_argument("--rows", type=Path, nargs="+", help="report rows measured earlier instead of measuring: "
                    "scale.json files or the JSON lines the measuring prints (say, sizes run one at a time)")
     p.add_argument("--one", nargs=2, metavar=("GRAPH", "OBJECTS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.one:
-        print(json.dumps(one_size(args.one[0], int(args.one[1]), args.budget, heldout=args.heldout,
-                                  evaluation=args.eval, device=args.device)))
+        print(json.dumps(one_size(args.one[0], int(args.one[1]), args.budget, seed=args.seed, heldout=args.heldout,
+                                  evaluation=args.eval, device=args.device, precision=args.precision)))
         return
     args.out.mkdir(parents=True, exist_ok=True)
     rows = load_rows(args.rows) if args.rows else measure(args)
@@ -231,7 +237,8 @@ def measure(args: argparse.Namespace) -> list[dict[str, Any]]:
         for n in args.sizes:
             result = subprocess.run([sys.executable, "-m", "benchmarks.bench_scale", "--one", graph, str(n),
                                      "--budget", str(args.budget), "--eval", str(args.eval), "--heldout",
-                                     str(args.heldout), "--device", args.device],
+                                     str(args.heldout), "--device", args.device, "--precision", args.precision,
+                                     "--seed", str(args.seed)],
                                     capture_output=True, text=True, check=True)
             rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
             print(json.dumps(rows[-1]), flush=True)

@@ -31,6 +31,8 @@ from causal.schedules import cosine_lr
 from proto.settings import doc
 
 LOG_2PI = math.log(2 * math.pi)
+TRAIN_PRECISIONS = ("fp32", "bf16")
+_LOW = {"fp32": None, "bf16": torch.bfloat16}
 __all__ = ["CDLConfig", "CDLModel", "FeatureGroup", "model_config_json", "model_from_config", "model_from_config_json",
            "_MaxAndDropOne", "masked_max", "max_and_runner_up"]  # the last three re-exported (causal.cbm_implicit)
 
@@ -57,6 +59,11 @@ class CDLConfig:
     grad_clip: float = doc(10.0, "gradient norm clip")
     cmi_threshold: float = doc(0.02, "CMI edge threshold epsilon_G, nats: edge if CMI >= this (also the "
                                      "point-wise CMI threshold of local graphs)")
+    train_precision: str = doc("fp32", "matrix products of the training update: fp32, or bf16 (bfloat16 "
+                                       "products of the feature networks and heads; weights, biases, the max "
+                                       "aggregation, losses and optimiser stay fp32, and CMI and every "
+                                       "evaluation stay fp32; ~4x faster products on CPUs with AVX512-BF16; "
+                                       "see docs/deviations.md)", choices=TRAIN_PRECISIONS)
 
     def __post_init__(self) -> None:
         for name in ("lr", "lr_final", "grad_clip"):
@@ -70,6 +77,8 @@ class CDLConfig:
             raise ValueError(f"lr_decay_updates must be >= 0, got {self.lr_decay_updates}")
         if not (math.isfinite(self.cmi_threshold) and self.cmi_threshold >= 0):
             raise ValueError(f"cmi_threshold must be a finite number >= 0, got {self.cmi_threshold}")
+        if self.train_precision not in TRAIN_PRECISIONS:
+            raise ValueError(f"train_precision must be one of {TRAIN_PRECISIONS}, got {self.train_precision!r}")
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"log_std_min ({self.log_std_min}) must be below log_std_max ({self.log_std_max})")
 
@@ -80,6 +89,18 @@ class CDLConfig:
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
 
+
+
+def _affine(bias: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, low: torch.dtype | None) -> torch.Tensor:
+    """``baddbmm(bias, x, weight)``; with ``low`` (the training update's ``train_precision``), the
+    product in that dtype and the bias added in fp32 (type promotion: one pass, an fp32 result).
+
+    Adding each network's own fp32 bias after the product keeps exact ties between two inputs'
+    features as improbable as in fp32, which the max aggregation's gradient routing assumes
+    (:mod:`causal.cdl_max`)."""
+    if low is None:
+        return torch.baddbmm(bias, x, weight)
+    return torch.add(bias, torch.bmm(x.to(low), weight.to(low)))
 
 
 def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
@@ -103,27 +124,31 @@ class FeatureGroup(nn.Module):
         self.w2 = _stacked(outputs * inputs, hidden, feature, fan_in=hidden)
         self.b2 = _stacked(outputs * inputs, 1, feature, fan_in=hidden)
 
-    def _second_layer(self, h: torch.Tensor) -> torch.Tensor:
+    def _second_layer(self, h: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
         j, k, n, hidden = h.shape
-        return torch.baddbmm(self.b2, h.reshape(j * k, n, hidden), self.w2).view(j, k, n, -1)
+        return _affine(self.b2, h.reshape(j * k, n, hidden), self.w2, low).view(j, k, n, -1)
 
-    def dense(self, x: torch.Tensor) -> torch.Tensor:
-        """Inputs [B, K, width] -> features [J, K, B, F]."""
+    def dense(self, x: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
+        """Inputs [B, K, width] -> features [J, K, B, F] (fp32; ``low``: see :func:`_affine`)."""
         if self.shape[2] == 1:  # scalar inputs: the first layer is an outer product, no matmul needed
-            h = torch.addcmul(self.b1, x[None, :, :, 0].transpose(1, 2)[..., None], self.w1)
+            x = x[None, :, :, 0].transpose(1, 2)[..., None]
+            if low is None:
+                h = torch.addcmul(self.b1, x, self.w1)
+            else:  # made in the low dtype, so the second layer's product needs no cast of it
+                h = torch.addcmul(self.b1.to(low), x.to(low), self.w1.to(low))
         else:
             h = torch.einsum("bkw,jkwh->jkbh", x, self.w1) + self.b1
-        return self._second_layer(torch.relu(h))
+        return self._second_layer(torch.relu(h), low)
 
-    def table(self) -> torch.Tensor:
+    def table(self, low: torch.dtype | None = None) -> torch.Tensor:
         """Features of every one-hot value: [J, K, width, F]."""
-        return self._second_layer(torch.relu(self.w1 + self.b1))
+        return self._second_layer(torch.relu(self.w1 + self.b1), low)
 
-    def onehot(self, index: torch.Tensor) -> torch.Tensor:
+    def onehot(self, index: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
         """Category indices [B, K] -> features [J, K, B, F]."""
         j, k, width, _, _ = self.shape
         flat = (torch.arange(k, device=index.device)[:, None] * width + index.T).reshape(-1)
-        return self.table().reshape(j, k * width, -1).index_select(1, flat).view(j, k, index.shape[0], -1)
+        return self.table(low).reshape(j, k * width, -1).index_select(1, flat).view(j, k, index.shape[0], -1)
 
     def dense_pairs(self, x: torch.Tensor, outputs: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
         """Features [P, B, F] of only the P (output, input) pairs ``outputs[p], inputs[p]`` from
@@ -172,18 +197,20 @@ class CDLModel(nn.Module):
             mask[n, : self.layout.sizes[j]] = True
         return mask
 
-    def features(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """[J, I, B, F] features phi^i for every output j, input i (group order) and sample."""
+    def features(self, state: torch.Tensor, action: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
+        """[J, I, B, F] features phi^i for every output j, input i (group order) and sample; always
+        fp32 (``low``, the training update's precision, only sets the products': :func:`_affine`)."""
         groups = []
         if self.cat_features is not None:
-            groups.append(self.cat_features.onehot(self.codec.categories(state).clamp_max(self.codec.max_cat - 1)))
+            index = self.codec.categories(state).clamp_max(self.codec.max_cat - 1)
+            groups.append(self.cat_features.onehot(index, low))
         if self.cont_features is not None:
-            groups.append(self.cont_features.dense(self.codec.continuous_values(state)))
+            groups.append(self.cont_features.dense(self.codec.continuous_values(state), low))
         if self.layout.action_kind == "categorical":
             index = action[:, :1].round().long().clamp(0, self.layout.action_size - 1)
-            groups.append(self.action_features.onehot(index))
+            groups.append(self.action_features.onehot(index, low))
         else:
-            groups.append(self.action_features.dense(action[:, None, :].to(torch.float32)))
+            groups.append(self.action_features.dense(action[:, None, :].to(torch.float32), low))
         return torch.cat(groups, dim=1)
 
     def masked_outputs(self, state: torch.Tensor, action: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -233,13 +260,14 @@ class CDLModel(nn.Module):
         out[..., self.input_order] = matrix
         return out
 
-    def predict(self, aggregated: torch.Tensor) -> torch.Tensor:
-        """Heads on aggregated features [J, K, B, F] -> raw outputs [J, K, B, head_width]."""
+    def predict(self, aggregated: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
+        """Heads on aggregated features [J, K, B, F] -> raw outputs [J, K, B, head_width] (fp32;
+        ``low``: the products' dtype, :func:`_affine`)."""
         j, k, b, f = aggregated.shape
         x = aggregated.reshape(j, k * b, f)
-        x = torch.relu(torch.baddbmm(self.head_b1, x, self.head_w1))
-        x = torch.relu(torch.baddbmm(self.head_b2, x, self.head_w2))
-        return torch.baddbmm(self.head_b3, x, self.head_w3).view(j, k, b, -1)
+        x = torch.relu(_affine(self.head_b1, x, self.head_w1, low))
+        x = torch.relu(_affine(self.head_b2, x, self.head_w2, low))
+        return _affine(self.head_b3, x, self.head_w3, low).view(j, k, b, -1)
 
     def nll(self, out: torch.Tensor, state: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
         """Negative log-likelihood [J, K, B] of the next state under outputs [J, K, B, O], in nats."""
@@ -291,25 +319,28 @@ class CDLModel(nn.Module):
         The heads run on the full aggregate of every (output, sample) and on the dropped / causal
         aggregates only where they differ from it (:func:`causal.cdl_max.training_aggregates`);
         every other row's term is the full one's NLL, the same value and gradient as running the
-        heads on it (tests/causal/test_cdl.py)."""
-        feats = self.features(state, action)
+        heads on it (tests/causal/test_cdl.py). The products run in ``cfg.train_precision``
+        (:func:`_affine`); everything else in fp32."""
+        low = _LOW[self.cfg.train_precision]
+        feats = self.features(state, action, low)
         drop = torch.randint(0, self.num_inputs, (self.num_outputs, 1, state.shape[0], 1),
                              generator=generator).to(feats.device)  # drawn on the CPU: the same draws on any device
         excluded = None if parents is None else ~self.to_group_order(parents)
         first, dropped, kept, d_j, d_b, c_j, c_b = training_aggregates(feats, drop, excluded)
         cat, delta = self._targets(state, next_state)
-        full = self._nll_of(self.predict(first[:, None]), cat, delta)[:, 0]
-        terms = [full, self._replace_rows(full, d_j, d_b, dropped, cat, delta)]
+        full = self._nll_of(self.predict(first[:, None], low), cat, delta)[:, 0]
+        terms = [full, self._replace_rows(full, d_j, d_b, dropped, cat, delta, low)]
         if parents is not None:
-            terms.append(self._replace_rows(full, c_j, c_b, kept, cat, delta))
+            terms.append(self._replace_rows(full, c_j, c_b, kept, cat, delta, low))
         return torch.stack(terms, dim=1)
 
     def _replace_rows(self, full: torch.Tensor, out_j: torch.Tensor, sample: torch.Tensor, rows: torch.Tensor,
-                      cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
+                      cat: torch.Tensor | None, delta: torch.Tensor | None,
+                      low: torch.dtype | None = None) -> torch.Tensor:
         """``full`` [J, B] with entries (out_j, sample) replaced by the heads' NLL of ``rows``."""
         if not len(out_j):
             return full
-        return full.index_put((out_j, sample), self._nll_of_rows(out_j, sample, rows, cat, delta))
+        return full.index_put((out_j, sample), self._nll_of_rows(out_j, sample, rows, cat, delta, low))
 
     def constant_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """[I] bool, graph column order: inputs (state factors, then the action) that take a single
@@ -364,7 +395,8 @@ class CDLModel(nn.Module):
         return gain
 
     def _nll_of_rows(self, out_j: torch.Tensor, sample: torch.Tensor, aggregated_rows: torch.Tensor,
-                     cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
+                     cat: torch.Tensor | None, delta: torch.Tensor | None,
+                     low: torch.dtype | None = None) -> torch.Tensor:
         """NLL ``[N]`` of output ``out_j[n]``'s head on ``aggregated_rows[n]`` against sample ``sample[n]``'s
         target; ``out_j`` sorted (as ``nonzero`` gives it), rows packed per output for the heads."""
         counts = torch.bincount(out_j, minlength=self.num_outputs)
@@ -379,7 +411,7 @@ class CDLModel(nn.Module):
         delta_rows = None
         if delta is not None:
             delta_rows = delta.gather(1, samples[codec.cont_index, :, None].expand(-1, -1, delta.shape[-1]))
-        return self._nll_of(self.predict(aggregated[:, None]), cat_rows, delta_rows)[:, 0][out_j, row]
+        return self._nll_of(self.predict(aggregated[:, None], low), cat_rows, delta_rows)[:, 0][out_j, row]
 
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,

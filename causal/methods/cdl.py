@@ -92,6 +92,6 @@ METHOD = Method(
     abstraction=cdl_abstraction,
     intrinsic=("preddiff", "curiosity"),
     rollout_step=cdl_rollout_step,
-    resumable=("lr_decay_updates", "lr_final"),
+    resumable=("lr_decay_updates", "lr_final", "train_precision"),
     devices=("cpu", "cuda"),
 )

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
 from services.runtime.config import build_config
 from services.dynamics_learner.config import DynamicsLearnerConfig
@@ -35,6 +36,18 @@ def test_learner_resumes_under_another_learning_rate_schedule(tmp_path) -> None:
     DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small), spec("chain")).checkpoint(path)
     decayed = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small, cdl_lr_decay_updates=500, cdl_lr_final=2e-4), spec("chain"))
     assert decayed.restore(path) and decayed.trainer.lr == decayed.trainer.cfg.lr_at(0)
+
+
+def test_learner_resumes_in_another_training_precision(tmp_path) -> None:
+    """The weights are fp32 in either precision, so a run trained with fp32 products may go on in bf16."""
+    path = tmp_path / "learner.pt"
+    small = dict(cdl_feature_hidden=8, cdl_feature_dim=8, cdl_predictor_hidden=8)
+    fp32 = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small), spec("chain"))
+    fp32.checkpoint(path)
+    bf16 = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small, cdl_train_precision="bf16"), spec("chain"))
+    assert bf16.restore(path) and bf16.trainer.cfg.train_precision == "bf16"
+    for name, tensor in bf16.trainer.model.state_dict().items():
+        assert torch.equal(tensor, fp32.trainer.model.state_dict()[name]), name
 
 
 def test_evaluator_refuses_another_env(tmp_path) -> None:
