@@ -1,7 +1,10 @@
 """Table 5.2 (chapter 5): ablations of ELDEN's local-graph detection (no Mixup & no regulariser,
 lambda = 0, a lambda sweep), each a switch of :class:`causal.elden.ELDENConfig`; and Table 5.1's
 learned-mask baselines (``input-mask``, ``attention-mask``: :mod:`causal.elden_masks`), each its own
-model on ELDEN's network, trained and scored the same way (its graph: the learned mask).
+model on ELDEN's network, trained and scored the same way (its graph: the learned mask); and Table
+5.1's pCMI row on the same data (``pcmi``: CDL's model, :class:`causal.cdl_trainer.CDLTrainer` at its
+defaults, drawing as many transitions as an ELDEN variant: ``updates x members x member_batch /
+cdl.batch_size`` updates of 64; its graph: point-wise CMI).
 
 As the chapter does for Tables 5.1-5.2 ("we train the dynamics model of each method ... on
 pre-collected transition data"), every variant trains an :class:`~causal.elden_trainer.ELDENTrainer`
@@ -28,6 +31,8 @@ import numpy as np
 import torch
 
 from benchmarks.local_graph_table import BUDGETS, _mean_sd, score_estimators, score_with, scripted_transitions
+from causal.cdl import CDLConfig
+from causal.cdl_trainer import CDLTrainer
 from causal.elden import ELDENConfig
 from causal.elden_masks import MaskConfig, MaskTrainer
 from causal.elden_trainer import ELDENTrainer
@@ -47,15 +52,20 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "lambda-1e-5": {"grad_reg": 1e-5},
     "input-mask": {"mixup": False, "grad_reg": 0.0},
     "attention-mask": {"mixup": False, "grad_reg": 0.0},
+    "pcmi": {},
 }
 """ELDENConfig overrides per variant (the rest: the defaults). ``no-mixup`` keeps the default lambda
-(not a row of the chapter's table). The mask baselines use neither ELDEN's regulariser nor its Mixup."""
+(not a row of the chapter's table). The mask baselines use neither ELDEN's regulariser nor its Mixup;
+``pcmi`` is not an ELDEN model (CDL's, :data:`PCMI`)."""
+PCMI = "pcmi"
+"""Table 5.1's pCMI row: CDL's model trained on the same transitions, scored by its point-wise CMI."""
 MASK_VARIANTS = {"input-mask": MaskConfig(kind="input"), "attention-mask": MaskConfig(kind="attention")}
 """Table 5.1's learned-mask baselines: their mask (the rest of the model: ELDENConfig's defaults)."""
 TABLE_ROWS = {"no-mixup-no-reg": "no Mixup & no Reg", "no-mixup": "no Mixup (lambda default)",
               "lambda-0": "no Reg, i.e. lambda = 0", "lambda-1e-1": "lambda = 1e-1", "lambda-1e-2": "lambda = 1e-2",
               "lambda-1e-3": "lambda = 1e-3", "lambda-1e-4": "lambda = 1e-4", "lambda-1e-5": "lambda = 1e-5",
-              "input-mask": "Input Mask (Table 5.1)", "attention-mask": "Attn Mask (Table 5.1)"}
+              "input-mask": "Input Mask (Table 5.1)", "attention-mask": "Attn Mask (Table 5.1)",
+              "pcmi": "pCMI (CDL, Table 5.1)"}
 CHAPTER = {"thawing": {"no-mixup-no-reg": (0.48, 0.42), "lambda-0": (0.57, 0.52), "lambda-1e-1": (0.68, 0.57),
                        "lambda-1e-2": (0.71, 0.57), "lambda-1e-3": (0.64, 0.55), "lambda-1e-4": (0.65, 0.55),
                        "lambda-1e-5": (0.63, 0.53)},
@@ -63,8 +73,9 @@ CHAPTER = {"thawing": {"no-mixup-no-reg": (0.48, 0.42), "lambda-0": (0.57, 0.52)
                             "lambda-1e-2": (0.76, 0.60), "lambda-1e-3": (0.78, 0.66), "lambda-1e-4": (0.75, 0.60),
                             "lambda-1e-5": (0.72, 0.57)}}
 """Table 5.2 (ROC AUC, F1): Thawing, CarWash; the mask baselines' rows are Table 5.1's."""
-for _env, _rows in (("thawing", {"input-mask": (0.50, 0.40), "attention-mask": (0.45, 0.47)}),
-                    ("cleaning-car", {"input-mask": (0.50, 0.32), "attention-mask": (0.47, 0.43)})):
+for _env, _rows in (("thawing", {"input-mask": (0.50, 0.40), "attention-mask": (0.45, 0.47), "pcmi": (0.55, 0.60)}),
+                    ("cleaning-car", {"input-mask": (0.50, 0.32), "attention-mask": (0.47, 0.43),
+                                      "pcmi": (0.73, 0.78)})):
     CHAPTER[_env].update(_rows)
 DEFAULT_VARIANTS = ["no-mixup-no-reg", "lambda-0", "lambda-1e-1", "lambda-1e-2", "lambda-1e-3"]
 
@@ -113,8 +124,35 @@ def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], 
     return trainer, stats
 
 
+def train_pcmi(layout: FactorLayout, data: tuple[np.ndarray, ...], updates: int,
+               seed: int) -> tuple[CDLTrainer, dict[str, float]]:
+    """CDL on the same transitions, drawing as many as ``updates`` ELDEN updates draw (rows uniformly,
+    as :func:`train`); the causal term's parents from the CMI of the last 2,000 rows drawn, every
+    1,000 updates, as the evaluator would hand them over."""
+    elden = ELDENConfig()
+    cfg = CDLConfig()
+    trainer = CDLTrainer(layout, cfg, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    tensors = tuple(torch.from_numpy(x) for x in data)
+    stats: dict[str, float] = {}
+    for step in range(1, -(-updates * elden.members * elden.member_batch // cfg.batch_size) + 1):
+        rows = torch.from_numpy(rng.integers(0, len(data[0]), cfg.batch_size))
+        stats = trainer.update(*(t[rows] for t in tensors))
+        if step % 1000 == 0:
+            sample = torch.from_numpy(rng.integers(0, len(data[0]), 2000))
+            trainer.set_parents(trainer.model.cmi(*(t[sample] for t in tensors)).numpy() >= cfg.cmi_threshold)
+    return trainer, stats
+
+
 def run_variant(env: str, seed: int, variant: str, data: tuple, layout: FactorLayout, scripted: tuple,
-                updates: int) -> tuple[dict[str, Any], ELDENTrainer]:
+                updates: int) -> tuple[dict[str, Any], ELDENTrainer | CDLTrainer]:
+    if variant == PCMI:
+        started = time.process_time()
+        cdl, stats = train_pcmi(layout, data, updates, seed)
+        return {"env": env, "seed": seed, "variant": variant, "config": {"cdl": dataclasses.asdict(cdl.cfg)},
+                "updates": updates, "cdl_updates": cdl.updates, "transitions": int(len(data[0])),
+                "final_stats": stats, "train_cpu_s": time.process_time() - started,
+                "estimators": score_estimators("cdl", cdl.model, scripted)}, cdl
     cfg = dataclasses.replace(ELDENConfig(), **VARIANTS[variant])
     mask = MASK_VARIANTS.get(variant)
     started = time.process_time()
@@ -136,7 +174,7 @@ def table(results: list[dict[str, Any]]) -> str:
     for variant in dict.fromkeys(r["variant"] for r in results):
         for env in dict.fromkeys(r["env"] for r in results if r["variant"] == variant):
             got = [r["estimators"] for r in results if r["variant"] == variant and r["env"] == env]
-            own = variant if variant in MASK_VARIANTS else "jacobian"
+            own = variant if variant in (*MASK_VARIANTS, PCMI) else "jacobian"
             stat = lambda name, key: _mean_sd([g[name][key] for g in got if name in g])  # noqa: E731
             entry = lambda key: _mean_sd([g[own]["per_entry"][key] for g in got])  # noqa: E731
             chapter = CHAPTER.get(env, {}).get(variant)

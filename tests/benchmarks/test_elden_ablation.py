@@ -19,6 +19,9 @@ def thawing_data() -> tuple:
 
 def test_every_variant_is_a_valid_config_and_has_a_row() -> None:
     for name, overrides in elden_ablation.VARIANTS.items():
+        if name == elden_ablation.PCMI:  # CDL's model, not an ELDEN switch
+            assert overrides == {} and name in elden_ablation.TABLE_ROWS
+            continue
         cfg = dataclasses.replace(ELDENConfig(), **overrides)
         assert name in elden_ablation.TABLE_ROWS
         assert cfg.mixup == (name not in ("no-mixup-no-reg", "no-mixup", *elden_ablation.MASK_VARIANTS))
@@ -80,3 +83,17 @@ def test_bad_budgets_are_refused_before_anything_runs(tmp_path) -> None:
     with pytest.raises(SystemExit):
         elden_ablation.main(["--updates", "0", "--out", str(tmp_path)])
     assert not (tmp_path / "elden-ablation.json").exists()
+
+
+def test_pcmi_trains_cdl_on_the_same_transitions_and_is_scored_by_point_wise_cmi(tmp_path, capsys) -> None:
+    """Table 5.1's pCMI row on the ELDEN variants' data: CDL drawing as many transitions as ELDEN
+    (2 updates x 5 members x 32 = 320 rows: 5 updates of 64), its own estimator scored."""
+    elden_ablation.main(["--variants", "pcmi", "lambda-0", "--updates", "2", "--transitions", "200",
+                         "--episodes", "2", "--out", str(tmp_path)])
+    results = {r["variant"]: r for r in json.loads((tmp_path / "elden-ablation.json").read_text())}
+    pcmi = results["pcmi"]
+    assert pcmi["cdl_updates"] == 5 and pcmi["transitions"] == results["lambda-0"]["transitions"] == 200
+    assert set(pcmi["estimators"]) == {"pcmi"} and 0.0 <= pcmi["estimators"]["pcmi"]["roc_auc"] <= 1.0
+    assert (tmp_path / "thawing-s0-pcmi-u2-t200.pt").exists()
+    out = capsys.readouterr().out
+    assert "| pCMI (CDL, Table 5.1) | thawing | 1 |" in out and "| 0.55 / 0.60 |" in out
