@@ -26,7 +26,9 @@ def test_every_variant_is_a_valid_config_and_has_a_row() -> None:
         assert name in elden_ablation.TABLE_ROWS
         assert cfg.mixup == (name not in ("no-mixup-no-reg", "no-mixup", *elden_ablation.MASK_VARIANTS))
     assert elden_ablation.VARIANTS["lambda-0"]["grad_reg"] == 0.0
-    assert set(elden_ablation.CHAPTER["thawing"]) <= set(elden_ablation.VARIANTS)
+    for env, rows in elden_ablation.CHAPTER.items():
+        assert set(rows) <= set(elden_ablation.VARIANTS), env
+    assert set(elden_ablation.CHAPTER) == {"thawing", "cleaning-car", "manipulation"}
 
 
 def test_collection_is_the_envs_own_transitions(thawing_data: tuple) -> None:
