@@ -48,7 +48,7 @@ import time
 import numpy as np
 import torch
 
-from causal.cdl import CDLConfig, CDLModel
+from causal.cdl import TRAIN_PRECISIONS, CDLConfig, CDLModel
 from causal.cdl_trainer import CDLTrainer
 from envs import make_env
 from causal.factored import FactorLayout
@@ -186,7 +186,7 @@ def main() -> None:
     p.add_argument("--device", default="cpu", help="where Causeway's trainer runs (cpu, cuda)")
     p.add_argument("--no-loop", action="store_true", help="skip the per-factor loop baseline")
     p.add_argument("--profile", action="store_true", help="only print torch's operator profile of 10 like-for-like updates")
-    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="--profile: the products' precision")
+    p.add_argument("--precision", choices=TRAIN_PRECISIONS, default="fp32", help="--profile: the products' precision")
     p.add_argument("--parents", choices=["true", "all"], default="true",
                    help="the causal term's parents: Chemical full's true graph (a trained run's; default) or every "
                         "input (a fresh trainer's, where the causal aggregate is the full one and costs nothing)")

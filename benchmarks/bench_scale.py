@@ -34,7 +34,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from causal.cdl import CDLConfig
+from causal.cdl import TRAIN_PRECISIONS, CDLConfig
 from causal.cdl_trainer import CDLTrainer
 from causal.factored import FactorLayout
 from causal.generalisation import random_transitions
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> None:
                    "the F1 checks); fewer for a quick run on a loaded machine")
     p.add_argument("--heldout", type=int, default=HELD_OUT, help="held-out transitions of the final graph")
     p.add_argument("--device", default="cpu", help="where the model and the data are (cpu, cuda)")
-    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
+    p.add_argument("--precision", choices=TRAIN_PRECISIONS, default="fp32",
                    help="the training update's matrix products (CDLConfig.train_precision)")
     p.add_argument("--seed", type=int, default=0, help="data, model and time-to-F1 seed")
     p.add_argument("--rows", type=Path, nargs="+", help="report rows measured earlier instead of measuring: "

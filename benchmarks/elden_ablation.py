@@ -131,8 +131,8 @@ def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], 
 def train_pcmi(layout: FactorLayout, data: tuple[np.ndarray, ...], updates: int,
                seed: int) -> tuple[CDLTrainer, dict[str, float]]:
     """CDL on the same transitions, drawing as many as ``updates`` ELDEN updates draw (rows uniformly,
-    as :func:`train`); the causal term's parents from the CMI of the last 2,000 rows drawn, every
-    1,000 updates, as the evaluator would hand them over."""
+    as :func:`train`); the causal term's parents from the CMI of 2,000 rows drawn afresh every 1,000
+    updates, as the evaluator would hand them over."""
     elden = ELDENConfig()
     cfg = CDLConfig()
     trainer = CDLTrainer(layout, cfg, seed=seed)
