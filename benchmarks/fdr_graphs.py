@@ -10,16 +10,19 @@ Benjamini-Hochberg at ``--fdr`` on ``CMI > --min-cmi``, Benjamini-Hochberg at ``
 with the bias estimated per entry from the same input permuted across the held-out samples
 (``bias="permuted"``, :mod:`causal.edge_tests`), the same against the output's and the graph's
 largest null (``pooled``, ``global``), Benjamini-Hochberg at ``--fdr`` on ``CMI >`` the level cut from
-the run's own CMI table (``bias="split"``: no number set by hand, no null), and the oracle (the
-best-threshold F1, which needs the truth). Also how the recall of the weak true edges (model CMI < 0.02) grows with the held-out
-data the tests see, under both.
+the run's own CMI table (``bias="split"``: no number set by hand, no null), edges at ``CMI >=`` the
+level where the table's negative side says the non-edges above it are at most ``--fdr`` of the entries
+(``bias="mirror"``, no null either), and the oracle (the best-threshold F1, which needs the truth).
+Also how the recall of the weak true edges (model CMI < 0.02) grows with the held-out data the tests
+see, under each.
 
     python -m benchmarks.fdr_graphs [--graphs collider chain full envs/dags/random10.json random:10:20:1
         random:10:25:2] [--seeds 0 1 2] [--updates 4000] [--fdr 0.05] [--min-cmi 0.005]
         [--train 100000] [--out benchmark-results/fdr]
 
-The table's last column counts the runs where the issue's goal held for the FDR graph at ``--min-cmi``:
-F1 within ``GOAL_MARGIN`` of the oracle's and not below the fixed 0.02 graph's.
+The table's last columns count the runs where the issue's goal held for the FDR graph at ``--min-cmi``,
+under ``split`` and under ``mirror``: F1 within ``GOAL_MARGIN`` of the oracle's and not below the fixed
+0.02 graph's.
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ import torch
 
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
-from causal.edge_tests import EdgeEstimate, fdr_graph, split_level
+from causal.edge_tests import EdgeEstimate, fdr_graph, mirror_level, split_level
 from causal.methods.cdl import permuted_terms
 from causal.factored import FactorLayout
 from causal.generalisation import random_transitions
@@ -112,6 +115,7 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
     overall = fdr_graph(estimate, args.fdr, 0.0, "global")
     split = fdr_graph(estimate, args.fdr, args.min_cmi, "split", cap=0.02)
     level = split_level(estimate, args.fdr, cap=0.02)
+    mirror = fdr_graph(estimate, args.fdr, args.min_cmi, "mirror", cap=0.02)
     return {"graph": graph, "seed": seed, "updates": args.updates,
             "true_edges": int((truth & scored_entries(truth.shape)).sum()),
             "false_discoveries": false(tested), "false_discoveries_permuted": false(nulled),
@@ -119,6 +123,8 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
             "false_discoveries_global": false(overall), "fdr_global": scores(overall, truth),
             "false_discoveries_split": false(split), "fdr_split": scores(split, truth),
             "split_level": level, "largest_non_edge_cmi": float(estimate.cmi[non_edges].max()),
+            "false_discoveries_mirror": false(mirror), "fdr_mirror": scores(mirror, truth),
+            "mirror_level": mirror_level(estimate, args.fdr, cap=0.02),
             "estimate": {k: [[float(f"{v:.6g}") for v in row] for row in getattr(estimate, k)]
                          for k in ("cmi", "stderr", "null", "excess_stderr")},
             "truth": truth.astype(int).tolist(),
@@ -129,33 +135,38 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
             "weak_recall_by_heldout_pooled": recall_weak("pooled"),
             "weak_recall_by_heldout_global": recall_weak("global"),
             "weak_recall_by_heldout_split": recall_weak("split"),
+            "weak_recall_by_heldout_mirror": recall_weak("mirror"),
             "non_edge_cmi_mean": float(estimate.cmi[non_edges].mean()),
             "non_edge_null_mean": float(estimate.null[non_edges].mean()),
             "by_min_cmi": {str(m): scores(fdr_graph(estimate, args.fdr, m), truth) for m in MIN_CMI_SWEEP}}
 
 
 RULES = (("fixed", "fixed 0.02"), ("fdr_graph", "FDR, min_cmi"), ("fdr_permuted", "FDR, permuted null"),
-         ("fdr_pooled", "FDR, pooled null"), ("fdr_global", "FDR, global null"), ("fdr_split", "FDR, split"))
-SUFFIXES = ("", "_permuted", "_pooled", "_global", "_split")
+         ("fdr_pooled", "FDR, pooled null"), ("fdr_global", "FDR, global null"), ("fdr_split", "FDR, split"),
+         ("fdr_mirror", "FDR, mirror"))
+SUFFIXES = ("", "_permuted", "_pooled", "_global", "_split", "_mirror")
 """The weak-recall keys of the rules but the fixed 0.02 graph, in ``RULES``' order."""
 
 
-def with_split(row: dict[str, Any], fdr: float, min_cmi: float) -> dict[str, Any]:
-    """A row with the split rule's F1, FDR and level recomputed from the estimate it dumped: rows from
-    before ``bias="split"`` existed, or from an earlier version of it. Where the level differs from
-    the one the run computed, its weak recall by held-out data (which needs the per-sample ratios, not
-    kept) is dropped."""
+def with_levels(row: dict[str, Any], fdr: float, min_cmi: float) -> dict[str, Any]:
+    """A row with the split and mirror rules' F1, FDR and levels recomputed from the estimate it
+    dumped: rows from before ``bias="split"`` or ``"mirror"`` existed, or from an earlier version of
+    them. Where a level differs from the one the run computed, that rule's weak recall by held-out
+    data (which needs the per-sample ratios, not kept) is dropped."""
     if "estimate" not in row:
         return row
     est = EdgeEstimate(*(np.array(row["estimate"][k]) for k in ("cmi", "stderr")), 0)
     truth = np.array(row["truth"], dtype=bool)
-    level = split_level(est, fdr, cap=0.02)
-    out = {**row, "fdr_split": scores(fdr_graph(est, fdr, min_cmi, "split", cap=0.02), truth), "split_level": level,
-           "largest_non_edge_cmi": float(est.cmi[~truth & scored_entries(truth.shape)].max()),
+    out = {**row, "largest_non_edge_cmi": float(est.cmi[~truth & scored_entries(truth.shape)].max()),
            "best_level_f1": max(scores(fdr_graph(est, fdr, m), truth)["f1"] for m in LEVEL_GRID)}
-    before = row.get("split_level", "absent")
-    if before == "absent" or (before is None) != (level is None) or (level is not None and abs(before - level) > 1e-3 * level):
-        out.pop("weak_recall_by_heldout_split", None)
+    for bias, level_of in (("split", split_level), ("mirror", mirror_level)):
+        level = level_of(est, fdr, cap=0.02)
+        out[f"fdr_{bias}"] = scores(fdr_graph(est, fdr, min_cmi, bias, cap=0.02), truth)
+        out[f"{bias}_level"] = level
+        before = row.get(f"{bias}_level", "absent")
+        if before == "absent" or (before is None) != (level is None) or \
+                (level is not None and abs(before - level) > 1e-3 * level):
+            out.pop(f"weak_recall_by_heldout_{bias}", None)
     return out
 
 
@@ -168,8 +179,8 @@ def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
              f"{' / '.join(f'{n // 1000}k' for n in HELDOUT_SIZES)} held-out ({' ; '.join(n.split(', ')[-1] for n in names[1:])}) |",
              "|---|---|---|" + "---|" * (len(RULES) + 3)]
     lines[0] += (f" goal met (FDR within {GOAL_MARGIN} of the oracle, not below fixed 0.02), min_cmi {min_cmi} |"
-                 " goal met, split |")
-    lines[1] += "---|---|"
+                 " goal met, split | goal met, mirror |")
+    lines[1] += "---|---|---|"
     budgets = {g: {r.get("updates") for r in rows if r["graph"] == g} for g in {r["graph"] for r in rows}}
     for graph, updates in dict.fromkeys((r["graph"], r.get("updates")) for r in rows):
         mine = [r for r in rows if (r["graph"], r.get("updates")) == (graph, updates)]
@@ -188,7 +199,8 @@ def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
                      + f" | {ms([r['oracle_f1'] for r in mine])} | "
                      + " / ".join(ms([r[key]["fdr"] for r in mine]) for key, _ in RULES[1:]) + " | "
                      + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in SUFFIXES)
-                     + f" | {sum(map(goal_met, mine))} of {len(mine)} | {sum(goal_met(r, 'fdr_split') for r in mine)} of {len(mine)} |")
+                     + f" | {sum(map(goal_met, mine))} of {len(mine)} | {sum(goal_met(r, 'fdr_split') for r in mine)} of {len(mine)}"
+                     + f" | {sum(goal_met(r, 'fdr_mirror') for r in mine)} of {len(mine)} |")
     return "\n".join(lines)
 
 
@@ -201,21 +213,27 @@ def goal_met(row: dict[str, Any], rule: str = "fdr_graph") -> bool:
 
 
 def split_table(rows: list[dict[str, Any]]) -> str:
-    """Per run (rows through :func:`with_split`): the level ``bias="split"`` cut (and the largest
-    non-edge CMI, which it should clear), the F1 of the fixed 0.02 graph, of the FDR graph at
-    ``--min-cmi``, at the split level and at the best of ``LEVEL_GRID``, the oracle's, the FDR the
-    split graph reached, and whether each FDR graph met the issue's goal."""
-    lines = ["| graph | seed | updates | largest non-edge CMI | split level | F1 fixed 0.02 | F1 FDR, min_cmi | "
-             "F1 FDR, split | F1 FDR, best level (needs the truth) | F1 oracle | FDR reached, split | "
-             "goal met, min_cmi / split |", "|---" * 12 + "|"]
+    """Per run (rows through :func:`with_levels`): the levels ``bias="split"`` and ``"mirror"`` cut
+    (and the largest non-edge CMI, which they should clear), the F1 of the fixed 0.02 graph, of the
+    FDR graph at ``--min-cmi``, at each level and at the best of ``LEVEL_GRID``, the oracle's, the FDR
+    the split and mirror graphs reached, and whether each FDR graph met the issue's goal."""
+    lines = ["| graph | seed | updates | largest non-edge CMI | split level | mirror level | F1 fixed 0.02 | "
+             "F1 FDR, min_cmi | F1 FDR, split | F1 FDR, mirror | F1 FDR, best level (needs the truth) | F1 oracle | "
+             "FDR reached, split / mirror | goal met, min_cmi / split / mirror |", "|---" * 14 + "|"]
+
+    def level(value: float | None) -> str:
+        return "none (min_cmi)" if value is None else f"{value:.2e}"
+
+    def met(r: dict[str, Any], rule: str) -> str:
+        return "yes" if goal_met(r, rule) else "no"
+
     for r in sorted(rows, key=lambda r: (r["graph"], r.get("updates") or 0, r["seed"])):
-        level = r.get("split_level")
         lines.append(f"| {r['graph']} | {r['seed']} | {r.get('updates')} | {r['largest_non_edge_cmi']:.2e} | "
-                     f"{'none (min_cmi)' if level is None else f'{level:.2e}'} | {r['fixed']['f1']:.3f} | "
-                     f"{r['fdr_graph']['f1']:.3f} | {r['fdr_split']['f1']:.3f} | "
+                     f"{level(r.get('split_level'))} | {level(r.get('mirror_level'))} | {r['fixed']['f1']:.3f} | "
+                     f"{r['fdr_graph']['f1']:.3f} | {r['fdr_split']['f1']:.3f} | {r['fdr_mirror']['f1']:.3f} | "
                      f"{r['best_level_f1']:.3f} | {r['oracle_f1']:.3f} | "
-                     f"{r['fdr_split']['fdr']:.3f} | {'yes' if goal_met(r) else 'no'} / "
-                     f"{'yes' if goal_met(r, 'fdr_split') else 'no'} |")
+                     f"{r['fdr_split']['fdr']:.3f} / {r['fdr_mirror']['fdr']:.3f} | {met(r, 'fdr_graph')} / "
+                     f"{met(r, 'fdr_split')} / {met(r, 'fdr_mirror')} |")
     return "\n".join(lines)
 
 
@@ -225,7 +243,8 @@ REQUESTED = (0.01, 0.05, 0.1, 0.2)
 def requested_table(rows: list[dict[str, Any]], min_cmi: float) -> str:
     """The false-discovery proportion reached at several requested rates, per rule, averaged over the
     runs that dumped their estimate (its mean over runs is the false-discovery rate reached)."""
-    rules = (("fixed", min_cmi), ("permuted", 0.0), ("pooled", 0.0), ("global", 0.0), ("split", min_cmi))
+    rules = (("fixed", min_cmi), ("permuted", 0.0), ("pooled", 0.0), ("global", 0.0), ("split", min_cmi),
+             ("mirror", min_cmi))
     dumped = [r for r in rows if "estimate" in r]
     lines = [f"| requested FDR | {' | '.join(f'{b} (min_cmi {m})' if b == 'fixed' else b for b, m in rules)} |",
              "|---|" + "---|" * len(rules)]
@@ -271,7 +290,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="only print the tables of these fdr.json files (or logs of JSON lines) of earlier runs")
     args = p.parse_args(argv)
     if args.table:
-        rows = [with_split(r, args.fdr, args.min_cmi) for r in read_rows(args.table)]
+        rows = [with_levels(r, args.fdr, args.min_cmi) for r in read_rows(args.table)]
         print(split_table(rows) + "\n\n" + table(rows, args.fdr, args.min_cmi) + "\n\n" + requested_table(rows, args.min_cmi))
         return
     torch.set_num_threads(1)
@@ -282,7 +301,7 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(one(graph, args.objects, seed, args))
             print(json.dumps(rows[-1]), flush=True)
     (args.out / "fdr.json").write_text(json.dumps(rows, indent=1))
-    rows = [with_split(r, args.fdr, args.min_cmi) for r in json.loads(json.dumps(rows))]
+    rows = [with_levels(r, args.fdr, args.min_cmi) for r in json.loads(json.dumps(rows))]
     print(split_table(rows) + "\n\n" + table(rows, args.fdr, args.min_cmi))
 
 

@@ -26,7 +26,10 @@ class GraphEvaluatorConfig(ServiceConfig):
                              "largest such null of the entry's output) or global (> the largest of the graph), "
                              "min_cmi then only marking undecided entries; or split (test CMI > a minimum effect "
                              "size cut from each estimate's CMI table, the gap between its two clusters of log CMI, "
-                             "min_cmi where it has none; needs no null) (causal.edge_tests)", choices=BIASES)
+                             "min_cmi where it has none; needs no null) or mirror (edge if CMI >= the smallest level "
+                             "where the entries below minus it, the non-edges' mirror image, are at most fdr of "
+                             "those above it; for a model whose non-edges are as often below 0 as above; needs no "
+                             "null) (causal.edge_tests)", choices=BIASES)
 
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "
                                 "eval_samples of them, so successive estimates see different episodes")

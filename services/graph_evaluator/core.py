@@ -82,7 +82,7 @@ class GraphEvaluatorCore:
         if cfg.edge_rule == "fdr" and not has_standard_errors(self.method):
             raise ValueError(f"edge_rule fdr needs standard errors of the graph's scores; {cfg.method}'s have none")
         if cfg.bias != "fixed" and not has_standard_errors(self.method):
-            raise ValueError(f"bias {cfg.bias} needs standard errors (and, but for split, the permuted-input null) "
+            raise ValueError(f"bias {cfg.bias} needs standard errors (and, but for split and mirror, the permuted-input null) "
                              f"of the graph's scores; {cfg.method}'s have none")
         self.permute = torch.Generator().manual_seed(cfg.seed + 2) if cfg.bias in NULL_BIASES else None
         """Draws the permutation of each estimate's permuted-input null (``bias`` permuted or pooled)."""
@@ -266,8 +266,8 @@ class GraphEvaluatorCore:
         return decide(estimate, cfg.edge_rule, self.threshold, cfg.fdr, cfg.min_cmi, bias=cfg.bias)
 
     def tested_level(self, cmi: np.ndarray, stderr: np.ndarray) -> float:
-        """The minimum effect size the fdr rule tested against: ``min_cmi``, or under ``bias`` split the
-        level cut from this estimate (``causal.edge_tests.effect_level``)."""
+        """The minimum effect size the fdr rule tested against: ``min_cmi``, or under ``bias`` split or
+        mirror the level cut from this estimate (``causal.edge_tests.effect_level``)."""
         cfg = self.cfg
         return effect_level(EdgeEstimate(cmi, stderr, 0), cfg.fdr, cfg.min_cmi, cfg.bias, cap=self.threshold)
 

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from causal.edge_tests import EdgeEstimate, benjamini_hochberg, decide, effect_level, fdr_graph, p_values, split_level, undecided
+from causal.edge_tests import (EdgeEstimate, benjamini_hochberg, decide, effect_level, fdr_graph, mirror_level, p_values,
+                                split_level, undecided)
 
 
 def test_benjamini_hochberg_by_hand() -> None:
@@ -257,3 +258,80 @@ def test_the_split_looks_below_the_fixed_threshold_only_and_marks_undecided_by_i
     edges, undecided = decide(EdgeEstimate(cmi, stderr, 10_000), "fdr", 0.02, 0.05, 5e-3, bias="split")
     assert undecided[j, i] and not edges[j, i] and np.array_equal(edges, truth)
     assert undecided.sum() == 1
+
+
+def test_the_mirror_level_by_hand() -> None:
+    """Non-edges at +-1e-5 ... +-2e-4 (20 each side), one weak edge at 1e-3, 8 strong ones at 0.5. The
+    tail is the largest tenth of the 20 negative magnitudes: 1.9e-4 (u) and 2e-4, so alpha = 1 / log(20 / 19)
+    and V(2e-4) = (20 / 19)^-alpha = e^-1. At 0.15: t = 1.9e-4 counts 2 entries at or below -t against
+    0.15 x 11 above, no; t = 2e-4 expects e^-1 = 0.37 <= 0.15 x 10, yes. At 0.02: 0.37 > 0.2, and the
+    next magnitude, 1e-3, expects (1e-3 / 1.9e-4)^-alpha ~ e^-32: the level is the weak edge's."""
+    shape = (7, 8)
+    off = ~np.eye(*shape, dtype=bool)
+    steps = np.arange(1, 21) * 1e-5
+    cmi = np.zeros(shape)
+    cmi[off] = np.concatenate([steps, -steps, [1e-3], np.full(off.sum() - 41, 0.5)])   # 49 entries: 8 strong
+    est = EdgeEstimate(cmi, np.full(shape, 1e-5), 10_000)
+    assert mirror_level(est, 0.15) == pytest.approx(2e-4)
+    assert mirror_level(est, 0.02) == pytest.approx(1e-3)
+    assert mirror_level(est, 0.02, cap=5e-4) == pytest.approx(5e-4)
+    assert effect_level(est, 0.15, 5e-3, "mirror") == pytest.approx(2e-4)
+    edges = fdr_graph(est, 0.15, 5e-3, "mirror")
+    assert np.array_equal(edges, (cmi >= 2e-4 - 1e-12) & off)          # no test above the level: 2e-4 is in
+    few = EdgeEstimate(np.where(off, np.abs(cmi), 0.0), est.stderr, 10_000)   # no negative side to mirror
+    assert mirror_level(few, 0.05) is None and effect_level(few, 0.05, 5e-3, "mirror") == 5e-3
+    assert np.array_equal(fdr_graph(few, 0.05, 5e-3, "mirror"), fdr_graph(few, 0.05, 5e-3))
+
+
+def test_the_mirror_rule_holds_its_rate_on_symmetric_non_edges_and_finds_weak_edges() -> None:
+    """Many tables whose non-edges are symmetric about 0 (heavy-tailed, a Student t with 3 degrees of
+    freedom, scale 1e-4) with 25 edges, five weak (0.8e-3 to 2e-3, where the largest non-edges reach)
+    and the rest strong: the rate reached averages close to the one requested and not above it by more
+    than the spread of 200 tables allows, where the fixed ``min_cmi`` of 5e-3 reaches 0 and misses every
+    weak edge. The mirror's level follows the non-edges' scale: a model trained longer (scale 2e-5)
+    gets a lower level."""
+    rng = np.random.default_rng(21)
+    shape = (30, 31)
+    off = ~np.eye(*shape, dtype=bool)
+    rows, cols = np.nonzero(off)
+
+    def table(scale: float) -> tuple[EdgeEstimate, np.ndarray]:
+        cmi = np.where(off, scale * rng.standard_t(3, shape), 0.0)
+        truth = np.zeros(shape, dtype=bool)
+        pick = rng.choice(rows.size, 25, replace=False)
+        truth[rows[pick], cols[pick]] = True
+        cmi[rows[pick], cols[pick]] = np.concatenate([np.linspace(8e-4, 2e-3, 5), rng.uniform(0.02, 1.0, 20)])
+        return EdgeEstimate(cmi, np.full(shape, scale), 10_000), truth
+
+    for fdr in (0.05, 0.2):
+        rates, weak_found, fixed_weak = [], [], []
+        for _ in range(200):
+            est, truth = table(1e-4)
+            edges = fdr_graph(est, fdr, 5e-3, "mirror", cap=0.02)
+            rates.append((edges & ~truth).sum() / max(edges.sum(), 1))
+            weak = truth & (est.cmi < 5e-3)
+            weak_found.append((edges & weak).sum() / weak.sum())
+            fixed_weak.append((fdr_graph(est, fdr, 5e-3) & weak).sum())
+        assert 0.4 * fdr < np.mean(rates) < 1.2 * fdr + 2 * np.std(rates) / np.sqrt(len(rates))
+        assert np.mean(weak_found) > 0.5 and sum(fixed_weak) == 0
+    coarse, fine = table(1e-4)[0], table(2e-5)[0]
+    assert mirror_level(fine, 0.05) < mirror_level(coarse, 0.05)
+
+
+def test_the_mirror_marks_undecided_by_its_level() -> None:
+    """Under ``mirror`` an entry is undecided when it is no edge and its interval reaches the level."""
+    rng = np.random.default_rng(22)
+    shape = (15, 16)
+    off = ~np.eye(*shape, dtype=bool)
+    cmi = np.where(off, rng.normal(0, 1e-4, shape), 0.0)
+    cmi[0:2, 2:12] = np.linspace(0.05, 0.5, 20).reshape(2, 10)   # 20 strong edges
+    j, i = 3, 4
+    cmi[j, i] = 0.0
+    level = mirror_level(EdgeEstimate(cmi, np.full(shape, 1e-5), 10_000), 0.05)
+    cmi[j, i] = 0.5 * level                                   # below the level, inside the negative side's reach
+    assert mirror_level(EdgeEstimate(cmi, np.full(shape, 1e-5), 10_000), 0.05) == level
+    stderr = np.full(shape, 1e-5)
+    stderr[j, i] = level                                      # its interval reaches the level
+    edges, undecided = decide(EdgeEstimate(cmi, stderr, 10_000), "fdr", 0.02, 0.05, 5e-3, bias="mirror")
+    assert not edges[j, i] and undecided[j, i]
+    assert level < 1e-3 and edges[0:2, 2:12].all() and edges.sum() == (cmi[off] >= level).sum()

@@ -124,10 +124,11 @@ def test_a_run_asking_for_a_null_its_method_lacks_is_refused_before_it_starts() 
     assert resolve(build_config(RunConfig, evaluator_bias="global", router_port=1)).evaluator.bias == "global"
 
 
-def test_the_split_level_reaches_the_report_without_a_null(tmp_path) -> None:
-    """``--evaluator-bias split``: no permuted null is drawn or sent; the report's edges and undecided
-    entries are ``decide``'s under the split rule and its ``min_cmi`` is the level that rule used."""
-    cfg = GraphEvaluatorConfig(edge_rule="fdr", bias="split", min_heldout=64, seed=3)
+@pytest.mark.parametrize("bias", ["split", "mirror"])
+def test_the_estimated_level_reaches_the_report_without_a_null(bias: str, tmp_path) -> None:
+    """``--evaluator-bias split`` or ``mirror``: no permuted null is drawn or sent; the report's edges and
+    undecided entries are ``decide``'s under that rule and its ``min_cmi`` is the level the rule used."""
+    cfg = GraphEvaluatorConfig(edge_rule="fdr", bias=bias, min_heldout=64, seed=3)
     core = filled_core(cfg)
     assert core.permute is None
     layout = FactorLayout.from_spec(core.spec)
@@ -135,23 +136,24 @@ def test_the_split_level_reaches_the_report_without_a_null(tmp_path) -> None:
     core.load_weights(Weights(model="cdl", version=1, config_json=model_config_json(layout, CDLConfig()),
                               env_steps=10, updates=100, tensors=export_tensors(CDLModel(layout, CDLConfig()))))
     report = decode(encode(core.evaluate_final()), GraphReport)
-    assert report.bias == "split" and report.cmi_null is None and report.edge_rule == "fdr"
+    assert report.bias == bias and report.cmi_null is None and report.edge_rule == "fdr"
     estimate = CMIGraph().estimate(core.model, *core.heldout.all()[:3])
-    edges, undecided = decide(estimate, "fdr", report.threshold, cfg.fdr, cfg.min_cmi, bias="split")
+    edges, undecided = decide(estimate, "fdr", report.threshold, cfg.fdr, cfg.min_cmi, bias=bias)
     assert np.array_equal(report.adjacency.astype(bool) & ~np.eye(*edges.shape, dtype=bool), edges)
     assert np.array_equal(report.undecided.astype(bool), undecided)
-    level = effect_level(estimate, cfg.fdr, cfg.min_cmi, "split", cap=report.threshold)
-    assert report.min_cmi == pytest.approx(level, rel=1e-4) and graph_fields(report)["bias"] == "split"
+    level = effect_level(estimate, cfg.fdr, cfg.min_cmi, bias, cap=report.threshold)
+    assert report.min_cmi == pytest.approx(level, rel=1e-4) and graph_fields(report)["bias"] == bias
 
 
-def test_the_split_level_needs_standard_errors_but_no_null() -> None:
+@pytest.mark.parametrize("bias", ["split", "mirror"])
+def test_the_estimated_level_needs_standard_errors_but_no_null(bias: str) -> None:
     from services.runtime.config import build_config
     from services.supervisor.wiring import resolve
 
-    cbm = resolve(build_config(RunConfig, method="cbm", env="chemical-distractors", evaluator_bias="split",
+    cbm = resolve(build_config(RunConfig, method="cbm", env="chemical-distractors", evaluator_bias=bias,
                                evaluator_edge_rule="fdr", router_port=1))
-    assert cbm.evaluator.bias == "split"
-    with pytest.raises(ValueError, match="--evaluator-bias split needs a global graph with standard errors"):
-        resolve(build_config(RunConfig, method="modular", evaluator_bias="split", router_port=1))
-    cfg = parse_config(RunConfig, ["--evaluator-edge-rule", "fdr", "--evaluator-bias", "split"], environ={})
-    assert cfg.evaluator.bias == "split"
+    assert cbm.evaluator.bias == bias
+    with pytest.raises(ValueError, match=f"--evaluator-bias {bias} needs a global graph with standard errors"):
+        resolve(build_config(RunConfig, method="modular", evaluator_bias=bias, router_port=1))
+    cfg = parse_config(RunConfig, ["--evaluator-edge-rule", "fdr", "--evaluator-bias", bias], environ={})
+    assert cfg.evaluator.bias == bias
