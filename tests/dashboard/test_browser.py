@@ -322,6 +322,13 @@ def test_undecided_entries_are_outlined_and_hover_shows_the_interval(stack) -> N
         assert low == pytest.approx(cmi - 1.96 * 0.002, rel=5e-3) and high == pytest.approx(cmi + 1.96 * 0.002, rel=5e-3)
         assert "crosses the boundary" in tip and "at FDR 0.05" in tip
         assert browser.exceptions == []
+    latest.set(encode(replace(report, weights_version=3, bias="mirror", min_cmi=3.5e-4)))   # the level mirror cut
+    with Browser(width=1440, height=1000) as browser:
+        browser.navigate(f"{base}/?run={RUN}")
+        browser.wait_for("document.body.dataset.weightsVersion === '3'", 10, "the mirror report")
+        legend = text(browser, "#legend-learned")
+        assert "CMI ≥ 3.50e-4 (the mirror level) at FDR 0.05" in legend and "test of" not in legend
+        assert browser.exceptions == []
 
 
 def test_the_reward_row_shows_its_intervals_and_undecided_entries(stack) -> None:

@@ -199,9 +199,12 @@ export class GraphViews {
 }
 
 // What the fdr rule tests a score against: min_cmi, or (dynamics rows under an estimated bias) the
-// permuted-input null; the reward row (CBM) has no null and is always tested against min_cmi.
+// permuted-input null; the reward row (CBM) has no null and is always tested against min_cmi. Under
+// bias mirror a dynamics entry is an edge when its score reaches the level (min_cmi in the report)
+// that the table's negative side puts at the requested rate: no test above the level.
 const NULLS = { permuted: 'its permuted null', pooled: "its output's largest null", global: "the graph's largest null" };
 function testedAgainst(graph, reward, score) {
+  if (!reward && graph.bias === 'mirror') return `${score} ≥ ${fmt.cmi(graph.min_cmi)} (the mirror level)`;
   const null_ = !reward && NULLS[graph.bias];
   return null_ ? `${score} > ${null_}` : `${score} > ${fmt.cmi(graph.min_cmi)}`;
 }
@@ -225,7 +228,8 @@ function renderColorbar(graph, container) {
   const dot = html('span', { className: 'key' }, [svg('svg', { width: 12, height: 12 })]);
   svg('circle', { cx: 6, cy: 6, r: 3, fill: '#0f172a' }, dot.firstChild);
   const rule = graph.edge_rule === 'fdr'
-    ? `test of ${testedAgainst(graph, false, labels.score)} at FDR ${graph.fdr}` : `${labels.score} ≥ ε`;
+    ? `${graph.bias === 'mirror' ? '' : 'test of '}${testedAgainst(graph, false, labels.score)} at FDR ${graph.fdr}`
+    : `${labels.score} ≥ ε`;
   const rewardRule = graph.reward && graph.edge_rule === 'fdr' && NULLS[graph.bias]
     ? `; reward row: ${testedAgainst(graph, true, labels.score)}` : '';
   dot.append(`${labels.learned} edge (${rule}${rewardRule})`);
