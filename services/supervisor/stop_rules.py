@@ -4,7 +4,11 @@ catch-up), a time budget.
 A target score needs the true graph; a stable graph does not: with ``--stable-reports`` and/or
 ``--stable-seconds`` the run stops once that many graph reports in a row (that long) carry the same
 graph and the newest has no undecided entry (every entry's confidence interval on one side of the
-edge rule's boundary, :func:`causal.edge_tests.decide`).
+edge rule's boundary, :func:`causal.edge_tests.decide`). Under ``--evaluator-bias mirror`` the
+boundary is a level placed inside the non-edges' tail, where some non-edge's interval always reaches
+it, and the rate, not each entry's interval, bounds the errors there: so its dynamics entries left
+undecided do not hold a stable graph back once the evaluator's draw is at its largest (more data
+cannot come; a CBM reward entry, tested against ``min_cmi``, still does).
 
 With ``--learner-updates-per-env-step`` the env-step budget does not stop the run at once: the
 env-workers are paused (the supervisor repeats ``pause`` every second so a restarted worker pauses
@@ -37,8 +41,11 @@ class StableGraph:
     reports in a row and ``seconds``, with no undecided entry in the newest report (0 turns a
     condition off; both 0: never)."""
 
-    def __init__(self, reports: int, seconds: float) -> None:
+    def __init__(self, reports: int, seconds: float, largest_draw: int = 0) -> None:
         self.reports, self.seconds = reports, seconds
+        self.largest_draw = largest_draw
+        """The evaluator's largest draw of held-out transitions (0: unknown, undecided entries always
+        hold the run back)."""
         self._last: tuple[int, float] | None = None
         self._graph = b""
         self.count, self.since = 0, 0.0
@@ -62,10 +69,21 @@ class StableGraph:
         if not (self.reports or self.seconds) or report is None or report.undecided is None:
             return ""
         settled = self.count >= self.reports and elapsed - self.since >= self.seconds
-        if not settled or report.undecided_count():  # CBM: the reward's parents decided too
+        open_ = report.undecided_count()  # CBM: the reward's parents decided too
+        if not settled or (open_ and not self.undecidable(report)):
             return ""
-        return (f"graph stable: unchanged for {self.count} reports ({elapsed - self.since:.0f}s), "
-                f"no undecided entry ({report.edge_rule} rule)")
+        stable = f"graph stable: unchanged for {self.count} reports ({elapsed - self.since:.0f}s), "
+        if open_:
+            return stable + (f"{open_} entries undecided at the mirror level with the largest draw "
+                             f"({report.num_heldout} held-out transitions)")
+        return stable + f"no undecided entry ({report.edge_rule} rule)"
+
+    def undecidable(self, report: GraphReport) -> bool:
+        """Whether the newest report's undecided entries are all dynamics entries at a mirror level
+        estimated on the evaluator's largest draw (the module's docstring)."""
+        reward_open = report.reward_undecided is not None and bool(report.reward_undecided.any())
+        return (report.edge_rule == "fdr" and report.bias == "mirror" and not reward_open
+                and self.largest_draw > 0 and report.num_heldout >= self.largest_draw)
 
 
 class StopRules:
@@ -75,7 +93,8 @@ class StopRules:
         self.cfg, self.pause_workers = cfg, pause_workers
         self.budget_reached_at: float | None = None
         self._last_pause = -1e9
-        self.stable = StableGraph(cfg.stable_reports, cfg.stable_seconds)
+        self.stable = StableGraph(cfg.stable_reports, cfg.stable_seconds,
+                                  max(cfg.evaluator.eval_samples, cfg.evaluator.eval_samples_max))
 
     def check(self, elapsed: float, report: GraphReport | None, env_steps: int) -> str:
         """The reason to stop now, or ``""``."""

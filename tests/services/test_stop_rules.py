@@ -67,6 +67,29 @@ def test_an_undecided_reward_parent_keeps_the_run_going() -> None:
     assert rule.reason(with_reward(4, (0, 1)), 4.0) != ""
 
 
+def test_under_mirror_entries_undecided_at_the_level_stop_only_with_the_largest_draw() -> None:
+    """``--evaluator-bias mirror``: the level sits in the non-edges' tail, so a stable graph whose only
+    undecided entries are the dynamics graph's stops once the draw is at its largest, and not before;
+    under any other bias, or with a reward entry open, undecided entries keep the run going."""
+    def tested(version: int, bias: str = "mirror", draw: int = 16_000, undecided: int = 2) -> GraphReport:
+        return dataclasses.replace(report(version, undecided=undecided), edge_rule="fdr", bias=bias,
+                                   min_cmi=3.5e-4, num_heldout=draw)
+
+    rule = StableGraph(reports=2, seconds=0.0, largest_draw=16_000)
+    assert rule.reason(tested(1, draw=8_000), 1.0) == "" and rule.reason(tested(2, draw=8_000), 2.0) == ""
+    reason = rule.reason(tested(3), 3.0)
+    assert "2 entries undecided at the mirror level with the largest draw (16000" in reason
+    for other in ("fixed", "split"):
+        held = StableGraph(reports=2, seconds=0.0, largest_draw=16_000)
+        assert all(held.reason(tested(v, bias=other), float(v)) == "" for v in (1, 2, 3))
+    reward_open = dataclasses.replace(tested(4), reward_parents=np.zeros(3, np.uint8),
+                                      reward_undecided=np.array([0, 1, 0], np.uint8))
+    assert StableGraph(reports=1, seconds=0.0, largest_draw=16_000).reason(reward_open, 4.0) == ""
+    unknown = StableGraph(reports=1, seconds=0.0)
+    assert unknown.reason(tested(5), 5.0) == ""
+    assert StopRules(build_config(RunConfig, stable_reports=1), lambda: None).stable.largest_draw == 16_000
+
+
 def test_time_and_reports_must_both_hold() -> None:
     rule = StableGraph(reports=2, seconds=60.0)
     assert rule.reason(report(1), 0.0) == "" and rule.reason(report(2), 30.0) == ""  # 2 reports, 30 s
