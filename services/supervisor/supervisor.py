@@ -60,6 +60,7 @@ class Supervisor:
                                  every_s=10.0 if self.cfg.progress else 1e9)
         self.history: list[dict[str, float]] = []
         self.last_report: GraphReport | None = None
+        self.revision: str | None = None  # the commit that runs, read once at the start
         self.last_local: LocalGraphReport | None = None
         self.local_history: list[dict[str, float]] = []
         self.stop_reason = ""
@@ -223,7 +224,8 @@ class Supervisor:
 
     def _write_run_config(self) -> None:
         write_config(self.cfg, self.run_dir / "config.json")
-        (self.run_dir / "git_revision").write_text(git_revision() + "\n")
+        self.revision = git_revision()
+        (self.run_dir / "git_revision").write_text(self.revision + "\n")
 
     def _on_stats(self, key: str, payload: bytes) -> None:
         try:
@@ -356,7 +358,7 @@ class Supervisor:
                  "wall_seconds": round(wall_seconds, 1), "stopped_because": self.stop_reason or "stopped",
                  "restarts": self.restarts(), "transitions_lost": self.progress.transitions_lost(),
                  "catch_up_seconds": round(wall_seconds - budget_at, 1) if budget_at is not None else 0.0,
-                 "git_revision": git_revision()}
+                 "git_revision": self.revision or git_revision()}
         task = {key: value for key in ("success_rate", "return_mean", "stages_mean")
                 if (value := self.progress.mean("env-worker", key)) is not None}
         if task:

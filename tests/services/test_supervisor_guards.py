@@ -233,3 +233,19 @@ def test_the_summary_keeps_the_report_the_stop_rule_judged(tmp_path) -> None:
     assert sup.last_report.weights_version == 2 and [h["f1"] for h in sup.history] == [1.0, 1.0]
     sup._on_graph(key, encode(dataclasses.replace(changed, weights_version=4, timestamp=4.0)))  # after the stop
     assert sup.last_report.weights_version == 2 and len(sup.history) == 2
+
+
+def test_the_summary_names_the_commit_the_run_started_at(tmp_path, monkeypatch) -> None:
+    """Seen after a long run: a commit made while it ran was the summary's ``git_revision``, not the
+    code that ran (the run directory's ``git_revision`` file, written at the start, was right)."""
+    import services.supervisor.supervisor as module
+
+    sup = module.Supervisor(build_config(RunConfig, router_port=7447, run_dir=str(tmp_path), progress=False))
+    monkeypatch.setattr(module, "git_revision", lambda: "a" * 40)
+    sup._write_run_config()
+    monkeypatch.setattr(module, "git_revision", lambda: "b" * 40)
+    seen = {}
+    monkeypatch.setattr(module, "analyse", lambda cfg, run_dir, record, stream: seen.update(record.facts) or {})
+    sup.finish(1.0)
+    assert seen["git_revision"] == "a" * 40
+    assert (tmp_path / "git_revision").read_text() == "a" * 40 + "\n"
