@@ -15,7 +15,9 @@ from gymnasium.utils.env_checker import check_env
 
 from causal.abstraction import minimal_abstraction
 from envs.distractors import Distractors
-from envs.manipulation_layout import BOX_WALL, MOV_HALF, TABLE_TOP, TOOL_HANDLE_HALF, TOOL_USE
+from envs.manipulation_layout import (
+    BOX_INNER_HALF, BOX_WALL, MOV_HALF, TABLE_TOP, TOOL_HANDLE_HALF, TOOL_USE,
+)
 from envs.manipulation_truth import global_graph, local_graph
 from envs.registry import env_entry
 from envs.skills import grasp
@@ -85,9 +87,14 @@ def test_the_scripted_solution_uses_the_tool_and_reaches_every_stage(env: ToolUs
     assert terminated and info["success"] and reward == 1.0 and info["stages"] == STAGES
     assert stages == sorted(stages) and stages[-1] == len(STAGES)  # stages are reached in order
     assert all(0.0 <= r < 1.0 for r in rewards[:-1])
-    # the arm held the tool, the tool moved the block, the arm then held the block, the block met the box
+    # the arm held the tool, the tool moved the block, the arm then held the block
     assert contacts[ROBOT_G, TOOL_G] and contacts[TOOL_G, BLOCK_G] and contacts[ROBOT_G, BLOCK_G]
-    assert contacts[BLOCK_G, BOX_G]
+    # ... and let it go inside the box's walls, on the box's floor. Success comes on release, while the
+    # block settles the last millimetre onto the floor: whether the floor contact is flagged at that
+    # step differs between CPUs (seed 0: flagged on one machine, on the next step on another), so the
+    # position is asked, not the contact.
+    assert np.all(np.abs(obs[BLOCK][:2] - obs[BOX][:2]) <= BOX_INNER_HALF - MOV_HALF)
+    assert obs[BLOCK][2] == pytest.approx(TABLE_TOP[2] + 2 * BOX_WALL + MOV_HALF, abs=5e-3)
     assert obs[BLOCK][0] <= IN_REACH_X
 
 
