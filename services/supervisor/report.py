@@ -58,7 +58,8 @@ def graph_fields(report: GraphReport) -> dict[str, Any]:
         "factor_names": list(report.factor_names) + ["action"],
         "learned_graph": report.adjacency.astype(int).tolist(),
         "true_graph": report.true_graph.astype(int).tolist() if report.true_graph is not None else None,
-        "cmi": np.round(report.cmi.astype(float), 5).tolist(),
+        "cmi": significant(report.cmi, 4),  # not decimals: the fdr rule's level can sit at 1e-4 nats and
+        # --evaluator-bias mirror's is read from entries far smaller
         "abstraction": abstraction.named(report.factor_names),
         **edge_test_fields(report),
     })
@@ -76,12 +77,18 @@ def edge_test_fields(report: GraphReport) -> dict[str, Any]:
     if report.edge_rule == "fdr":
         out.update(fdr=report.fdr, min_cmi=report.min_cmi, bias=report.bias)
     if report.cmi_null is not None:
-        out["cmi_null"] = [[float(f"{v:.3g}") for v in row] for row in report.cmi_null.astype(float)]
+        out["cmi_null"] = significant(report.cmi_null, 3)
     if report.cmi_stderr is not None:
-        out["cmi_stderr"] = [[float(f"{v:.3g}") for v in row] for row in report.cmi_stderr.astype(float)]
+        out["cmi_stderr"] = significant(report.cmi_stderr, 3)
         out["undecided"] = report.undecided.astype(int).tolist()
         out["undecided_entries"] = int(report.undecided.sum())
     return out
+
+
+def significant(values: np.ndarray, digits: int) -> list:
+    """``values`` as nested lists of floats rounded to ``digits`` significant digits."""
+    return [float(f"{v:.{digits}g}") for v in np.asarray(values, dtype=float).ravel()] if np.ndim(values) == 1 \
+        else [significant(row, digits) for row in np.asarray(values, dtype=float)]
 
 
 def score_line(metrics: dict[str, float]) -> str:

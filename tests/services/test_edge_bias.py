@@ -157,3 +157,29 @@ def test_the_estimated_level_needs_standard_errors_but_no_null(bias: str) -> Non
         resolve(build_config(RunConfig, method="modular", evaluator_bias=bias, router_port=1))
     cfg = parse_config(RunConfig, ["--evaluator-edge-rule", "fdr", "--evaluator-bias", bias], environ={})
     assert cfg.evaluator.bias == bias
+
+
+def test_the_summary_keeps_the_small_cmi_entries_the_level_is_read_from() -> None:
+    """Seen reading live ``mirror`` runs: the summary rounded the CMI to 5 decimals, which made most
+    of a long-trained model's non-edges 0 and hid the negative side ``mirror`` reads its level from.
+    It keeps 4 significant digits, so the summary's table gives the report's level back."""
+    from causal.edge_tests import EdgeEstimate, mirror_level
+
+    rng = np.random.default_rng(0)
+    n = 12
+    cmi = (rng.standard_t(3, (n, n + 1)) * 1e-6).astype(np.float32)   # non-edges at 1e-7 .. 1e-5 nats
+    cmi[np.arange(n), (np.arange(n) + 1) % n] = 3e-3                     # one edge per output
+    stderr = np.full_like(cmi, 1e-6)
+    level = mirror_level(EdgeEstimate(cmi, stderr, 2000), 0.05, cap=0.02)
+    report = GraphReport(kind="cdl", weights_version=1, env_steps=10, updates=10,
+                         factor_names=tuple(f"f{i}" for i in range(n)), cmi=cmi,
+                         adjacency=(cmi >= level).astype(np.uint8), threshold=0.02, controllable=(),
+                         action_relevant=(), action_irrelevant=(), metrics={}, timestamp=1.0,
+                         undecided=np.zeros_like(cmi, np.uint8), cmi_stderr=stderr, edge_rule="fdr", fdr=0.05,
+                         min_cmi=level, bias="mirror")
+    fields = graph_fields(report)
+    kept = np.asarray(fields["cmi"], np.float64)
+    np.testing.assert_allclose(kept, cmi, rtol=1e-3, atol=0)
+    assert (np.sign(kept) == np.sign(cmi)).all()
+    again = mirror_level(EdgeEstimate(kept, np.asarray(fields["cmi_stderr"]), 2000), 0.05, cap=0.02)
+    assert again == pytest.approx(fields["min_cmi"], rel=1e-3)
