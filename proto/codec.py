@@ -312,7 +312,7 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
         "true_reward_parents": _optional(_PARENTS), "cmi_stderr": _optional(_F32_2D),
         "undecided": _optional(_GRAPH), "edge_rule": _str, "fdr": _float, "min_cmi": _float,
         "bias": _str, "cmi_null": _optional(_F32_2D), "reward_stderr": _optional(_F32_1D),
-        "reward_undecided": _optional(_PARENTS),
+        "reward_undecided": _optional(_PARENTS), "reward_min_cmi": _float,
     },
     LocalGraphReport: {
         "kind": _str, "estimator": _str, "weights_version": _int, "env_steps": _int, "updates": _int,

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -246,6 +246,10 @@ class GraphReport:
     """float32 [d_S + 1], >= 0: the reward scores' standard errors (CBM: delta method), when known"""
     reward_undecided: np.ndarray | None = None
     """uint8 [d_S + 1]: reward entries the data cannot yet decide, with ``reward_stderr``"""
+    reward_min_cmi: float = 0.0
+    """The minimum effect size the fdr rule tested the reward scores against (the configured
+    ``min_cmi``: the reward row has no null and no estimated level, so under ``bias`` split or mirror
+    it differs from ``min_cmi``, the dynamics level); 0 unless the reward was tested (schema version 9)"""
 
     def decided_graph(self) -> bytes:
         """The graph as decided (adjacency and, with a reward graph, the reward's parents), as bytes to

@@ -226,5 +226,6 @@ def edge_rule_document(report: GraphReport) -> dict:
     """How the report's edges were decided (``bias``: what the fdr rule tests the dynamics CMI against),
     and how many entries are undecided (None without standard errors)."""
     return {"edge_rule": report.edge_rule, "fdr": report.fdr, "min_cmi": report.min_cmi, "bias": report.bias,
+            "reward_min_cmi": report.reward_min_cmi,
             "undecided": None if report.undecided is None else int(report.undecided.sum())}
 

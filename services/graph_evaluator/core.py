@@ -315,7 +315,9 @@ class GraphEvaluatorCore:
                            min_cmi=self.tested_level(cmi, stderr) if rule == "fdr" else 0.0,
                            bias=self.cfg.bias if rule == "fdr" else "fixed", cmi_null=self.null_ema,
                            reward_stderr=self.reward_stderr_ema,
-                           reward_undecided=None if reward_undecided is None else reward_undecided.astype(np.uint8))
+                           reward_undecided=None if reward_undecided is None else reward_undecided.astype(np.uint8),
+                           reward_min_cmi=self.cfg.min_cmi if reward_undecided is not None and self.cfg.edge_rule == "fdr"
+                           else 0.0)
 
     def fingerprint(self) -> str:
         """What a checkpoint must match to be resumed: the environment (held-out data is env-specific);

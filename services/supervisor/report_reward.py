@@ -44,6 +44,8 @@ def reward_fields(report: GraphReport) -> dict[str, Any]:
     if report.reward_stderr is not None:  # CBM's reward CMI: delta-method standard errors (issue 22)
         out["reward_graph"]["stderr"] = {c: float(f"{v:.3g}") for c, v in zip(causes, report.reward_stderr.astype(float))}
         out["reward_graph"]["undecided"] = [c for c, u in zip(causes, report.reward_undecided) if u]
+        if report.reward_min_cmi > 0.0:
+            out["reward_graph"]["min_cmi"] = report.reward_min_cmi  # the fdr rule's effect size for this row
     out["task_abstraction"] = task_abstraction_fields(report)
     if any(is_distractor(n) for n in names) and report.true_graph is not None:
         out["distractors"] = distractor_scores(report.adjacency, report.true_graph, report.factor_names)

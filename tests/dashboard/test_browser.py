@@ -342,8 +342,9 @@ def test_the_reward_row_shows_its_intervals_and_undecided_entries(stack) -> None
     reward_undecided[2] = 1  # obj0.y -> reward
     null = np.full(plain.cmi.shape, 1e-3, np.float32)
     report = replace(plain, cmi_stderr=np.full(plain.cmi.shape, 0.002, np.float32), undecided=undecided,
-                     edge_rule="fdr", fdr=0.05, min_cmi=5e-3, bias="pooled", cmi_null=null,
-                     reward_stderr=np.full(10, 0.004, np.float32), reward_undecided=reward_undecided)
+                     edge_rule="fdr", fdr=0.05, min_cmi=2e-3, bias="pooled", cmi_null=null,
+                     reward_stderr=np.full(10, 0.004, np.float32), reward_undecided=reward_undecided,
+                     reward_min_cmi=5e-3)  # the row's own effect size, not the dynamics graph's min_cmi
     cbm = publisher.serve_latest(topics.graph("cbm-tested", "cbm"))
     cbm.set(encode(report))
     try:

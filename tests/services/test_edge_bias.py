@@ -87,10 +87,14 @@ def cbm_core(cfg: GraphEvaluatorConfig) -> GraphEvaluatorCore:
     return core
 
 
-def test_cbm_reports_standard_errors_fdr_decisions_and_undecided_entries_of_both_graphs() -> None:
-    cfg = GraphEvaluatorConfig(method="cbm", edge_rule="fdr", min_heldout=64, min_cmi=5e-3)
+@pytest.mark.parametrize("bias", ["fixed", "mirror"])
+def test_cbm_reports_standard_errors_fdr_decisions_and_undecided_entries_of_both_graphs(bias: str) -> None:
+    """Both graphs' tests reach the report; the reward row's effect size is the configured ``min_cmi``
+    (``reward_min_cmi``) whatever level the dynamics graph used (under ``mirror``: its own)."""
+    cfg = GraphEvaluatorConfig(method="cbm", edge_rule="fdr", min_heldout=64, min_cmi=5e-3, bias=bias)
     core = cbm_core(cfg)
     report = decode(encode(core.evaluate_final()), GraphReport)
+    assert report.reward_min_cmi == 5e-3 and (bias == "mirror" or report.min_cmi == 5e-3)
     d = len(report.factor_names)
     assert report.edge_rule == "fdr" and report.cmi_stderr.shape == (d, d + 1) and report.undecided is not None
     assert report.reward_stderr.shape == (d + 1,) and (report.reward_stderr > 0).any()
@@ -100,6 +104,11 @@ def test_cbm_reports_standard_errors_fdr_decisions_and_undecided_entries_of_both
     fields = graph_fields(report)
     assert set(fields["reward_graph"]["stderr"]) == set(report.factor_names) | {"action"}
     assert "undecided" in fields["reward_graph"] and "cmi_stderr" in fields
+    assert fields["reward_graph"]["min_cmi"] == 5e-3
+    with pytest.raises(ProtocolError, match="reward_min_cmi"):
+        decode(encode(GraphReport(**{**report.__dict__, "reward_stderr": None, "reward_undecided": None})), GraphReport)
+    with pytest.raises(ProtocolError, match="reward_min_cmi"):
+        decode(encode(GraphReport(**{**report.__dict__, "reward_min_cmi": float("nan")})), GraphReport)
     assert core.history[-1]["reward_undecided_entries"] == int(open_.sum())
 
 

@@ -199,14 +199,15 @@ export class GraphViews {
 }
 
 // What the fdr rule tests a score against: min_cmi, or (dynamics rows under an estimated bias) the
-// permuted-input null; the reward row (CBM) has no null and is always tested against min_cmi. Under
+// permuted-input null; the reward row (CBM) has no null and is always tested against the configured
+// min_cmi (reward_min_cmi: under bias split or mirror min_cmi is the dynamics level). Under
 // bias mirror a dynamics entry is an edge when its score reaches the level (min_cmi in the report)
 // that the table's negative side puts at the requested rate: no test above the level.
 const NULLS = { permuted: 'its permuted null', pooled: "its output's largest null", global: "the graph's largest null" };
 function testedAgainst(graph, reward, score) {
   if (!reward && graph.bias === 'mirror') return `${score} ≥ ${fmt.cmi(graph.min_cmi)} (the mirror level)`;
   const null_ = !reward && NULLS[graph.bias];
-  return null_ ? `${score} > ${null_}` : `${score} > ${fmt.cmi(graph.min_cmi)}`;
+  return null_ ? `${score} > ${null_}` : `${score} > ${fmt.cmi(reward ? graph.reward_min_cmi : graph.min_cmi)}`;
 }
 
 function renderColorbar(graph, container) {
