@@ -273,28 +273,17 @@ class CDLModel(nn.Module):
         """Negative log-likelihood [J, K, B] of the next state under outputs [J, K, B, O], in nats."""
         return self._nll_of(out, *self._targets(state, next_state))
 
-    def _targets(self, state: torch.Tensor, next_state: torch.Tensor, samples: torch.Tensor | None = None
-                 ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    def _targets(self, state: torch.Tensor,
+                 next_state: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """What the heads are scored against, per output and sample: the next class of each
-        categorical output [J_cat, B] and the change of each continuous output [J_cont, B, max_cont];
-        with ``samples`` [J, N], output j's row n is sample ``samples[j, n]``'s ([J_*, N(, m)])."""
+        categorical output [J_cat, B] and the change of each continuous output [J_cont, B, max_cont]."""
         codec = self.codec
         cat = codec.categories(next_state).T.clamp_max(codec.max_cat - 1) if codec.cat_factors else None
         delta = None
         if codec.cont_factors:
             current = codec.continuous_values(state).permute(1, 0, 2)
             delta = codec.continuous_values(next_state).permute(1, 0, 2) - current
-        return (cat, delta) if samples is None else self._target_rows(cat, delta, samples)
-
-    def _target_rows(self, cat: torch.Tensor | None, delta: torch.Tensor | None, samples: torch.Tensor
-                     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """:meth:`_targets` ``cat`` / ``delta`` of every sample -> output j's row n of sample ``samples[j, n]``."""
-        codec = self.codec
-        cat_rows = None if cat is None else cat.gather(1, samples[codec.cat_index])
-        delta_rows = None
-        if delta is not None:
-            delta_rows = delta.gather(1, samples[codec.cont_index, :, None].expand(-1, -1, delta.shape[-1]))
-        return cat_rows, delta_rows
+        return cat, delta
 
     def _nll_of(self, out: torch.Tensor, cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
         """NLL [J, K, N] of outputs [J, K, N, O] against :meth:`_targets` laid out [J_*, N(, m)]."""
@@ -338,34 +327,20 @@ class CDLModel(nn.Module):
                              generator=generator).to(feats.device)  # drawn on the CPU: the same draws on any device
         excluded = None if parents is None else ~self.to_group_order(parents)
         first, dropped, kept, d_j, d_b, c_j, c_b = training_aggregates(feats, drop, excluded)
-        # one pass of the heads over every row they run on: the full aggregates, then each output's
-        # dropped rows, then its causal rows (packed per output, padded to the longest)
-        b = state.shape[0]
-        parts = [(first, torch.arange(b, device=first.device).expand(self.num_outputs, -1), None)]
-        parts.append(self._packed(d_j, d_b, dropped))
+        cat, delta = self._targets(state, next_state)
+        full = self._nll_of(self.predict(first[:, None], low), cat, delta)[:, 0]
+        terms = [full, self._replace_rows(full, d_j, d_b, dropped, cat, delta, low)]
         if parents is not None:
-            parts.append(self._packed(c_j, c_b, kept))
-        nll = self._nll_of(self.predict(torch.cat([p[0] for p in parts], dim=1)[:, None], low),
-                           *self._targets(state, next_state, torch.cat([p[1] for p in parts], dim=1)))[:, 0]
-        full, terms, offset = nll[:, :b], [nll[:, :b]], b
-        for (out_j, sample), (rows, _, slot) in zip(((d_j, d_b), (c_j, c_b)), parts[1:]):
-            terms.append(full.index_put((out_j, sample), nll[:, offset:][out_j, slot]) if len(out_j) else full)
-            offset += rows.shape[1]
+            terms.append(self._replace_rows(full, c_j, c_b, kept, cat, delta, low))
         return torch.stack(terms, dim=1)
 
-    def _packed(self, out_j: torch.Tensor, sample: torch.Tensor, rows: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Rows [N, F] of outputs ``out_j`` (sorted, as ``nonzero`` gives them) for samples ``sample``,
-        packed per output: ``(aggregated [J, R, F], samples [J, R], slot [N])``, R the most rows any
-        output has; padding rows are zero features of sample 0, computed and never read."""
-        counts = torch.bincount(out_j, minlength=self.num_outputs)
-        slot = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
-        width = int(counts.max()) if len(out_j) else 0
-        aggregated = rows.new_zeros(self.num_outputs, width, rows.shape[-1])
-        aggregated[out_j, slot] = rows
-        samples = torch.zeros(self.num_outputs, width, dtype=torch.long, device=out_j.device)
-        samples[out_j, slot] = sample
-        return aggregated, samples, slot
+    def _replace_rows(self, full: torch.Tensor, out_j: torch.Tensor, sample: torch.Tensor, rows: torch.Tensor,
+                      cat: torch.Tensor | None, delta: torch.Tensor | None,
+                      low: torch.dtype | None = None) -> torch.Tensor:
+        """``full`` [J, B] with entries (out_j, sample) replaced by the heads' NLL of ``rows``."""
+        if not len(out_j):
+            return full
+        return full.index_put((out_j, sample), self._nll_of_rows(out_j, sample, rows, cat, delta, low))
 
     def constant_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """[I] bool, graph column order: inputs (state factors, then the action) that take a single
@@ -420,12 +395,23 @@ class CDLModel(nn.Module):
         return gain
 
     def _nll_of_rows(self, out_j: torch.Tensor, sample: torch.Tensor, aggregated_rows: torch.Tensor,
-                     cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
+                     cat: torch.Tensor | None, delta: torch.Tensor | None,
+                     low: torch.dtype | None = None) -> torch.Tensor:
         """NLL ``[N]`` of output ``out_j[n]``'s head on ``aggregated_rows[n]`` against sample ``sample[n]``'s
-        target (``cat`` / ``delta`` as :meth:`_targets` gives them for every sample); ``out_j`` sorted
-        (as ``nonzero`` gives it), rows packed per output for the heads (:meth:`_packed`)."""
-        aggregated, samples, slot = self._packed(out_j, sample, aggregated_rows)
-        return self._nll_of(self.predict(aggregated[:, None]), *self._target_rows(cat, delta, samples))[:, 0][out_j, slot]
+        target; ``out_j`` sorted (as ``nonzero`` gives it), rows packed per output for the heads."""
+        counts = torch.bincount(out_j, minlength=self.num_outputs)
+        row = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
+        rows = int(counts.max())
+        aggregated = aggregated_rows.new_zeros(self.num_outputs, rows, aggregated_rows.shape[-1])
+        aggregated[out_j, row] = aggregated_rows
+        samples = torch.zeros(self.num_outputs, rows, dtype=torch.long, device=out_j.device)
+        samples[out_j, row] = sample
+        codec = self.codec
+        cat_rows = cat.gather(1, samples[codec.cat_index]) if cat is not None else None
+        delta_rows = None
+        if delta is not None:
+            delta_rows = delta.gather(1, samples[codec.cont_index, :, None].expand(-1, -1, delta.shape[-1]))
+        return self._nll_of(self.predict(aggregated[:, None], low), cat_rows, delta_rows)[:, 0][out_j, row]
 
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
