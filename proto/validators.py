@@ -174,7 +174,8 @@ def _check_reward_graph(m: GraphReport, d: int) -> None:
         require(got == (d + 1,), "inconsistent", f"GraphReport.reward_stderr: {got}, want {(d + 1,)}")
         require(bool((m.reward_stderr >= 0).all()), "bad_array", "GraphReport.reward_stderr: negative")
         _check_graph(m.reward_undecided, (d + 1,), "GraphReport.reward_undecided")
-    ok = bool(np.isfinite(m.reward_min_cmi)) and m.reward_min_cmi >= 0.0 and (m.reward_stderr is not None or m.reward_min_cmi == 0.0)
+    ok = bool(np.isfinite(m.reward_min_cmi)) and m.reward_min_cmi >= 0.0
+    ok = ok and (m.reward_stderr is not None or m.reward_min_cmi == 0.0)
     require(ok, "bad_field", f"GraphReport.reward_min_cmi: {m.reward_min_cmi} (finite, >= 0, and 0 without reward_stderr)")
 
 
