@@ -1,4 +1,4 @@
-"""CDL update (or CMI) time of ``causal/cdl.py`` at an earlier git revision against the working tree's, in one run.
+"""CDL update (or CMI) time of ``causal/cdl.py`` (and ``causal/cdl_max.py``) at an earlier git revision against the working tree's, in one run.
 
 The same ``CDLTrainer`` (same parameters, optimiser, batch and seed) runs with the model code of each
 revision; timed rounds alternate between the two, so both see the same load, and the median of the
@@ -9,7 +9,7 @@ run's model (its checkpointed weights and widths) rather than a fresh one, since
 the max, and so the cost of the sparse drop-one evaluation, depends on training.
 
     python -m benchmarks.bench_cdl_revisions --before REV [--objects 10] [--batch 64] [--rounds 7]
-        [--updates 5] [--causal-every 1] [--width 64] [--parents true|all] [--measure update|cmi]
+        [--updates 5] [--causal-every 1] [--precision fp32|bf16] [--width 64] [--parents true|all] [--measure update|cmi]
         [--transitions 2000] [--run-dir RUN]
 """
 from __future__ import annotations
@@ -28,21 +28,34 @@ import torch
 
 import causal.cdl as current
 from benchmarks.bench_cdl_update import chemical_batch, true_parents
-from causal.cdl import CDLConfig, CDLModel
+from causal.cdl import TRAIN_PRECISIONS, CDLConfig, CDLModel
 from causal.cdl_trainer import CDLTrainer
 from services.supervisor.evaluation import load_model
 
 
-def module_at(revision: str) -> ModuleType:
-    """``causal/cdl.py`` as it was at ``revision``, imported under its own name."""
-    source = subprocess.run(["git", "show", f"{revision}:causal/cdl.py"], check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "cdl_before.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("cdl_before", path)
+def _import_at(revision: str, path: str, name: str, replace: tuple[str, str] | None = None) -> ModuleType:
+    """The file ``path`` as it was at ``revision``, imported as module ``name`` (``replace``: one
+    substitution in its source first)."""
+    source = subprocess.run(["git", "show", f"{revision}:{path}"], check=True, capture_output=True, text=True).stdout
+    if replace is not None:
+        source = source.replace(*replace)
+    file = Path(tempfile.mkdtemp()) / f"{name}.py"
+    file.write_text(source)
+    spec = importlib.util.spec_from_file_location(name, file)
     module = importlib.util.module_from_spec(spec)
-    sys.modules["cdl_before"] = module
+    sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def module_at(revision: str) -> ModuleType:
+    """``causal/cdl.py`` as it was at ``revision``, imported under its own name, with the max
+    aggregation of ``causal/cdl_max.py`` at the same revision where it has one."""
+    replace = None
+    if subprocess.run(["git", "cat-file", "-e", f"{revision}:causal/cdl_max.py"], capture_output=True).returncode == 0:
+        _import_at(revision, "causal/cdl_max.py", "cdl_max_before")
+        replace = ("from causal.cdl_max import", "from cdl_max_before import")
+    return _import_at(revision, "causal/cdl.py", "cdl_before", replace)
 
 
 def time_cmi(models: dict[str, CDLModel], objects: int, transitions: int, rounds: int) -> dict[str, float]:
@@ -67,6 +80,7 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--width", type=int, default=64, help="feature hidden = feature dim = head hidden")
     p.add_argument("--causal-every", type=int, default=1)
+    p.add_argument("--precision", choices=TRAIN_PRECISIONS, default="fp32", help="the training products' precision")
     p.add_argument("--rounds", type=int, default=7)
     p.add_argument("--updates", type=int, default=5, help="updates per timed round")
     p.add_argument("--measure", choices=["update", "cmi"], default="update")
@@ -79,7 +93,7 @@ def main() -> None:
     torch.set_num_threads(1)
     layout, batch = chemical_batch(args.objects, args.batch)
     cfg = CDLConfig(feature_hidden=args.width, feature_dim=args.width, predictor_hidden=args.width,
-                    causal_every=args.causal_every)
+                    causal_every=args.causal_every, train_precision=args.precision)
     trainers = {}
     for name, module in (("before", module_at(args.before)), ("after", current)):
         trainer = CDLTrainer(layout, cfg, seed=0)
@@ -104,7 +118,7 @@ def main() -> None:
     median = {name: statistics.median(t) for name, t in times.items()}
     median_cpu = {name: statistics.median(t) for name, t in cpu.items()}
     print(f"CDLTrainer.update, {args.objects} objects, batch {args.batch}, width {args.width}, causal term every "
-          f"{args.causal_every} (parents: {args.parents}), 1 thread, median of {args.rounds} alternating rounds of "
+          f"{args.causal_every} (parents: {args.parents}), {args.precision} products, 1 thread, median of {args.rounds} alternating rounds of "
           f"{args.updates}; wall-clock and, in brackets, CPU seconds of this process (less disturbed by other load)")
     for name, seconds in median.items():
         print(f"  {name:<6} ({args.before if name == 'before' else 'working tree'}): {seconds * 1000:8.1f} ms/update "

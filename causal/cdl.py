@@ -93,14 +93,16 @@ class CDLConfig:
 
 def _affine(bias: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, low: torch.dtype | None) -> torch.Tensor:
     """``baddbmm(bias, x, weight)``; with ``low`` (the training update's ``train_precision``), the
-    product in that dtype and the bias added in fp32 (type promotion: one pass, an fp32 result).
+    product in that dtype, cast to fp32, and the bias added in fp32.
 
     Adding each network's own fp32 bias after the product keeps exact ties between two inputs'
     features as improbable as in fp32, which the max aggregation's gradient routing assumes
-    (:mod:`causal.cdl_max`)."""
+    (:mod:`causal.cdl_max`). The cast and an in-place add are two vectorised passes; the one-pass
+    ``torch.add(bias, product)`` with type promotion takes a slow path on the CPU, ~20x slower (it was
+    the largest single operator of a bf16 update)."""
     if low is None:
         return torch.baddbmm(bias, x, weight)
-    return torch.add(bias, torch.bmm(x.to(low), weight.to(low)))
+    return torch.bmm(x.to(low), weight.to(low)).to(torch.float32).add_(bias)
 
 
 def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
