@@ -110,6 +110,69 @@ def _stacked(*shape: int, fan_in: int) -> nn.Parameter:
     return nn.Parameter(torch.empty(*shape).uniform_(-bound, bound))
 
 
+class _ScalarNetworks(torch.autograd.Function):
+    """Feature networks of scalar inputs, ``w2 relu(w1 x + b1) + b2`` for every (output, input), with
+    a hand-written backward: features [J, K, B, F] from inputs [B, K], written between the features
+    ``head`` [J, K_h, B, F] and ``tail`` [J, K_t, B, F] of the other inputs (either may be None):
+    [J, K_h + K + K_t, B, F], the concatenation along inputs.
+
+    The same products as :meth:`FeatureGroup.dense` (in ``low`` or fp32, the bias added in fp32), and
+    the gradients autograd would give, to the products' rounding. Autograd's backward of that chain
+    spent about as long in copies and casts as in the products: the gradient arrived as a strided
+    slice of the concatenated features, was made contiguous and then cast; each weight's gradient was
+    cast back through its own ``to``; the first layer's weight gradient was a product and a sum over
+    samples. Here the gradient is cast once (contiguous by the cast), the first layer's weight
+    gradient is one batched product over samples, and the products are written into the
+    concatenated tensor directly (no concatenation copy of the largest group). Inputs get no gradient
+    (they are data), so :meth:`FeatureGroup.dense` uses this only when they need none."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, b2: torch.Tensor,
+                low: torch.dtype | None, head: torch.Tensor | None = None,
+                tail: torch.Tensor | None = None) -> torch.Tensor:
+        j, k, _, hidden = w1.shape
+        n = x.shape[0]
+        dtype = low or w1.dtype
+        xs = x.T.contiguous()[None, :, :, None].to(dtype)  # [1, K, B, 1]; contiguous, so h is
+        h = torch.addcmul(b1.to(dtype), xs, w1.to(dtype)).relu_()  # [J, K, B, H]
+        w2l = w2.to(dtype)
+        ctx.save_for_backward(xs, h, w2l)
+        k_head = 0 if head is None else head.shape[1]
+        k_tail = 0 if tail is None else tail.shape[1]
+        ctx.inputs = (k_head, k, k_tail)
+        product = torch.bmm(h.view(j * k, n, hidden), w2l) if low is not None else \
+            torch.baddbmm(b2, h.view(j * k, n, hidden), w2)
+        if not k_head and not k_tail:
+            return product.to(b2.dtype).add_(b2).view(j, k, n, -1) if low is not None else product.view(j, k, n, -1)
+        out = torch.empty(j, k_head + k + k_tail, n, product.shape[-1], dtype=b2.dtype, device=x.device)
+        if k_head:
+            out[:, :k_head] = head
+        if k_tail:
+            out[:, k_head + k:] = tail
+        mid = out[:, k_head : k_head + k]
+        mid.copy_(product.view(j, k, n, -1))
+        if low is not None:
+            mid.add_(b2.view(j, k, 1, -1))
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        xs, h, w2l = ctx.saved_tensors
+        k_head, k, k_tail = ctx.inputs
+        j, _, n, hidden = h.shape
+        mid = grad[:, k_head : k_head + k]
+        grad_b2 = mid.sum(dim=2).view(j * k, 1, -1)
+        g = mid.to(h.dtype).reshape(j * k, n, -1)  # a cast to bf16 of the strided slice is contiguous: one copy
+        grad_w2 = torch.bmm(h.view(j * k, n, hidden).transpose(1, 2), g)
+        gh = torch.ops.aten.threshold_backward(torch.bmm(g, w2l.transpose(1, 2)).view(j, k, n, hidden), h, 0)
+        grad_w1 = torch.matmul(xs.transpose(2, 3), gh)  # [1, K, 1, B] @ [J, K, B, H]: the sum over samples
+        fp32 = grad.dtype  # the parameters' (fp32 when the products are in ``low``)
+        grad_head = grad[:, :k_head] if k_head and ctx.needs_input_grad[6] else None
+        grad_tail = grad[:, k_head + k:] if k_tail and ctx.needs_input_grad[7] else None
+        return (None, grad_w1.to(fp32), gh.sum(dim=2, keepdim=True).to(fp32), grad_w2.to(fp32), grad_b2, None,
+                grad_head, grad_tail)
+
+
 class FeatureGroup(nn.Module):
     """Feature networks phi^{j,k}: width -> hidden -> feature, for K inputs of one kind and every output j.
 
@@ -130,10 +193,21 @@ class FeatureGroup(nn.Module):
         j, k, n, hidden = h.shape
         return _affine(self.b2, h.reshape(j * k, n, hidden), self.w2, low).view(j, k, n, -1)
 
-    def dense(self, x: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
-        """Inputs [B, K, width] -> features [J, K, B, F] (fp32; ``low``: see :func:`_affine`)."""
+    def dense(self, x: torch.Tensor, low: torch.dtype | None = None, fused: bool = False,
+              head: torch.Tensor | None = None, tail: torch.Tensor | None = None) -> torch.Tensor:
+        """Inputs [B, K, width] -> features [J, K, B, F] (fp32; ``low``: see :func:`_affine`).
+
+        ``fused``: scalar inputs' networks by :class:`_ScalarNetworks` (CDL's training update;
+        first-order gradients of the parameters only, so not where a gradient of the inputs or a
+        second-order one is taken), placed between the features ``head`` and ``tail`` of the other
+        inputs (concatenated along inputs). Other inputs than scalars, or inputs that need a gradient,
+        take the plain path and the concatenation."""
+        if fused and self.shape[2] == 1 and not x.requires_grad:
+            return _ScalarNetworks.apply(x[:, :, 0], self.w1, self.b1, self.w2, self.b2, low, head, tail)
+        if head is not None or tail is not None:
+            return torch.cat([g for g in (head, self.dense(x, low), tail) if g is not None], dim=1)
         if self.shape[2] == 1:  # scalar inputs: the first layer is an outer product, no matmul needed
-            x = x[None, :, :, 0].transpose(1, 2)[..., None]
+            x = x[None, :, :, 0].transpose(1, 2).contiguous()[..., None]  # contiguous: then so is h
             if low is None:
                 h = torch.addcmul(self.b1, x, self.w1)
             else:  # made in the low dtype, so the second layer's product needs no cast of it
@@ -202,18 +276,18 @@ class CDLModel(nn.Module):
     def features(self, state: torch.Tensor, action: torch.Tensor, low: torch.dtype | None = None) -> torch.Tensor:
         """[J, I, B, F] features phi^i for every output j, input i (group order) and sample; always
         fp32 (``low``, the training update's precision, only sets the products': :func:`_affine`)."""
-        groups = []
+        head = None
         if self.cat_features is not None:
             index = self.codec.categories(state).clamp_max(self.codec.max_cat - 1)
-            groups.append(self.cat_features.onehot(index, low))
-        if self.cont_features is not None:
-            groups.append(self.cont_features.dense(self.codec.continuous_values(state), low))
+            head = self.cat_features.onehot(index, low)
         if self.layout.action_kind == "categorical":
             index = action[:, :1].round().long().clamp(0, self.layout.action_size - 1)
-            groups.append(self.action_features.onehot(index, low))
+            tail = self.action_features.onehot(index, low)
         else:
-            groups.append(self.action_features.dense(action[:, None, :].to(torch.float32), low))
-        return torch.cat(groups, dim=1)
+            tail = self.action_features.dense(action[:, None, :].to(torch.float32), low)
+        if self.cont_features is not None:  # written between the two (group order), without a concatenation copy
+            return self.cont_features.dense(self.codec.continuous_values(state), low, fused=True, head=head, tail=tail)
+        return torch.cat([g for g in (head, tail) if g is not None], dim=1)
 
     def masked_outputs(self, state: torch.Tensor, action: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Raw head outputs [J, B, head_width] with each output's inputs restricted to ``mask``
