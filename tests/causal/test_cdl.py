@@ -479,3 +479,28 @@ def test_scalar_networks_written_between_the_other_groups_equal_the_plain_path(d
     tol = {torch.float64: 1e-12, torch.float32: 1e-6}[dtype] if low is None else 2e-2
     for name, grad in plain_grads.items():
         torch.testing.assert_close(fused_grads[name], grad, rtol=tol, atol=tol * float(grad.abs().max()), msg=name)
+
+
+@pytest.mark.parametrize("grad_clip", [1e-3, 1e6])  # clipping every update, and never
+def test_the_clip_applied_by_adam_equals_clip_grad_norm_then_adam(grad_clip: float) -> None:
+    """CDLTrainer clips by fused Adam's ``grad_scale`` (no pass of its own over the gradients): the
+    same parameters as ``clip_grad_norm_`` followed by the step, to rounding."""
+    cfg = CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8, grad_clip=grad_clip)
+    trainer, reference = CDLTrainer(LAYOUT, cfg, seed=3), CDLTrainer(LAYOUT, cfg, seed=3)
+    rng = np.random.default_rng(9)
+    for _ in range(4):
+        batch = toy_batch(rng, 32)
+        trainer.update(*batch)
+        model = reference.model  # the same update with the plain clip
+        causal = reference.updates % cfg.causal_every == 0
+        nll = model.training_nll(*batch, reference.parents if causal else None, reference.generator)
+        reference.optimizer.zero_grad(set_to_none=True)
+        nll.mean(dim=2).sum().backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+        reference.optimizer.step()
+        reference.updates += 1
+    for (name, p), q in zip(trainer.model.named_parameters(), reference.model.parameters()):
+        torch.testing.assert_close(p, q, rtol=1e-5, atol=1e-6, msg=name)
+    fresh = CDLTrainer(LAYOUT, cfg, seed=3).model.parameters()
+    moved = max(float((p - q).detach().abs().max()) for p, q in zip(trainer.model.parameters(), fresh))
+    assert moved > 0
