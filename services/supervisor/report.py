@@ -15,6 +15,7 @@ from causal.abstraction import Abstraction  # noqa: E402
 from causal.graph_metrics import binary_scores, scored_entries  # noqa: E402
 from proto.messages import GraphReport  # noqa: E402
 from services.supervisor.report_reward import reward_fields  # noqa: E402
+from services.supervisor.rounding import significant  # noqa: E402
 
 SUMMARY_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc", "best_threshold", "best_threshold_f1",
                   "best_threshold_accuracy", "best_threshold_precision", "best_threshold_recall")
@@ -83,12 +84,6 @@ def edge_test_fields(report: GraphReport) -> dict[str, Any]:
         out["undecided"] = report.undecided.astype(int).tolist()
         out["undecided_entries"] = int(report.undecided.sum())
     return out
-
-
-def significant(values: np.ndarray, digits: int) -> list:
-    """``values`` as nested lists of floats rounded to ``digits`` significant digits."""
-    return [float(f"{v:.{digits}g}") for v in np.asarray(values, dtype=float).ravel()] if np.ndim(values) == 1 \
-        else [significant(row, digits) for row in np.asarray(values, dtype=float)]
 
 
 def score_line(metrics: dict[str, float]) -> str:

@@ -22,6 +22,7 @@ from causal.abstraction import cdl_abstraction, minimal_abstraction  # noqa: E40
 from causal.graph_metrics import binary_scores, scored_entries  # noqa: E402
 from envs.distractors import is_distractor  # noqa: E402
 from proto.messages import GraphReport  # noqa: E402
+from services.supervisor.rounding import significant  # noqa: E402
 
 REWARD_SCORES = ("accuracy", "precision", "recall", "f1", "roc_auc")
 
@@ -36,13 +37,13 @@ def reward_fields(report: GraphReport) -> dict[str, Any]:
     m = report.metrics
     out: dict[str, Any] = {"reward_graph": {
         "threshold": report.reward_threshold,
-        "scores": {c: round(float(v), 5) for c, v in zip(causes, report.reward_scores)},
+        "scores": dict(zip(causes, significant(report.reward_scores, 4))),  # as the dynamics graph's cmi
         "learned_parents": [c for c, p in zip(causes, report.reward_parents) if p],
         "true_parents": (None if report.true_reward_parents is None
                          else [c for c, p in zip(causes, report.true_reward_parents) if p]),
         **{k: float(m[f"reward_{k}"]) for k in REWARD_SCORES if f"reward_{k}" in m}}}
     if report.reward_stderr is not None:  # CBM's reward CMI: delta-method standard errors (issue 22)
-        out["reward_graph"]["stderr"] = {c: float(f"{v:.3g}") for c, v in zip(causes, report.reward_stderr.astype(float))}
+        out["reward_graph"]["stderr"] = dict(zip(causes, significant(report.reward_stderr, 3)))
         out["reward_graph"]["undecided"] = [c for c, u in zip(causes, report.reward_undecided) if u]
         if report.reward_min_cmi > 0.0:
             out["reward_graph"]["min_cmi"] = report.reward_min_cmi  # the fdr rule's effect size for this row

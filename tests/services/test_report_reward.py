@@ -58,3 +58,14 @@ def test_a_report_without_a_reward_graph_adds_nothing(tmp_path) -> None:
     assert "reward_graph" not in reporting.graph_fields(plain)
     plot_abstraction(report, tmp_path / "abstraction.png")
     assert (tmp_path / "abstraction.png").stat().st_size > 1_000
+
+
+def test_the_reward_scores_keep_their_small_entries() -> None:
+    """The reward row's scores are written to significant digits, as the dynamics graph's CMI is: a
+    score of 3.2e-6 nats is not 0 in the summary (5 decimals made it 0)."""
+    report = _report()
+    scores = report.reward_scores.copy()
+    scores[2] = 3.21234e-6
+    content = reporting.graph_fields(type(report)(**{**report.__dict__, "reward_scores": scores}))
+    kept = content["reward_graph"]["scores"][list(report.factor_names)[2]]
+    assert kept == pytest.approx(3.212e-6, rel=1e-9)
