@@ -114,18 +114,26 @@ def collect(env: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np
     return state, action, next_state, layout
 
 
+def _uniform_updates(trainer: ELDENTrainer | CDLTrainer, tensors: tuple[torch.Tensor, ...], rng: np.random.Generator,
+                     steps: int, batch: int, every: int = 0, hook=None) -> dict[str, float]:
+    """``steps`` updates of ``trainer``, each on ``batch`` rows drawn uniformly by ``rng``; ``hook()``
+    after every ``every``-th update (0: never). The stats of the last update."""
+    stats: dict[str, float] = {}
+    for step in range(1, steps + 1):
+        rows = torch.from_numpy(rng.integers(0, len(tensors[0]), batch))
+        stats = trainer.update(*(t[rows] for t in tensors))
+        if every and step % every == 0:
+            hook()
+    return stats
+
+
 def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], updates: int,
           seed: int, mask: MaskConfig | None = None) -> tuple[ELDENTrainer, dict[str, float]]:
     """``updates`` steps of an ELDENTrainer (a MaskTrainer with ``mask``), each on ``members x
     member_batch`` rows drawn uniformly."""
     trainer = ELDENTrainer(layout, cfg, seed=seed) if mask is None else MaskTrainer(layout, cfg, mask, seed=seed)
-    rng = np.random.default_rng(seed + 1)
     tensors = tuple(torch.from_numpy(x) for x in data)
-    stats: dict[str, float] = {}
-    for _ in range(updates):
-        rows = torch.from_numpy(rng.integers(0, len(data[0]), trainer.batch_size))
-        stats = trainer.update(*(t[rows] for t in tensors))
-    return trainer, stats
+    return trainer, _uniform_updates(trainer, tensors, np.random.default_rng(seed + 1), updates, trainer.batch_size)
 
 
 def train_pcmi(layout: FactorLayout, data: tuple[np.ndarray, ...], updates: int,
@@ -138,14 +146,13 @@ def train_pcmi(layout: FactorLayout, data: tuple[np.ndarray, ...], updates: int,
     trainer = CDLTrainer(layout, cfg, seed=seed)
     rng = np.random.default_rng(seed + 1)
     tensors = tuple(torch.from_numpy(x) for x in data)
-    stats: dict[str, float] = {}
-    for step in range(1, -(-updates * elden.members * elden.member_batch // cfg.batch_size) + 1):
-        rows = torch.from_numpy(rng.integers(0, len(data[0]), cfg.batch_size))
-        stats = trainer.update(*(t[rows] for t in tensors))
-        if step % 1000 == 0:
-            sample = torch.from_numpy(rng.integers(0, len(data[0]), 2000))
-            trainer.set_parents(trainer.model.cmi(*(t[sample] for t in tensors)).numpy() >= cfg.cmi_threshold)
-    return trainer, stats
+
+    def new_parents() -> None:
+        sample = torch.from_numpy(rng.integers(0, len(data[0]), 2000))
+        trainer.set_parents(trainer.model.cmi(*(t[sample] for t in tensors)).numpy() >= cfg.cmi_threshold)
+
+    steps = -(-updates * elden.members * elden.member_batch // cfg.batch_size)
+    return trainer, _uniform_updates(trainer, tensors, rng, steps, cfg.batch_size, every=1000, hook=new_parents)
 
 
 def run_variant(env: str, seed: int, variant: str, data: tuple, layout: FactorLayout, scripted: tuple,
