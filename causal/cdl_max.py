@@ -122,10 +122,14 @@ class _TrainingAggregates(torch.autograd.Function):
     @staticmethod
     def forward(ctx, feats: torch.Tensor, drop: torch.Tensor, excluded: torch.Tensor | None):
         first, second = (x[:, 0] for x in _top_two(feats))  # [J, B, F]
-        dropped_is_max = feats.gather(1, drop.expand(-1, -1, -1, feats.shape[-1]))[:, 0] == first
+        j, i, b, f = feats.shape  # the dropped input's features: whole [F] rows of a [J * I * B, F] view
+        rows = ((torch.arange(j, device=feats.device)[:, None] * i + drop[:, 0, :, 0]) * b
+                + torch.arange(b, device=feats.device)).reshape(-1)
+        dropped_is_max = feats.reshape(-1, f).index_select(0, rows).view(j, b, f) == first
         d_j, d_b = dropped_is_max.any(dim=-1).nonzero(as_tuple=True)
-        dropped = torch.where(dropped_is_max[d_j, d_b], second[d_j, d_b], first[d_j, d_b])
-        c_j = c_b = d_j[:0]
+        d_rows = _rows(d_j, d_b, first)
+        dropped = torch.where(_take(dropped_is_max, d_rows), _take(second, d_rows), _take(first, d_rows))
+        c_j = c_b = c_rows = d_j[:0]
         kept_rows, c_pairs, index, routes = first.new_zeros(0, first.shape[-1]), dropped_is_max & False, None, None
         if excluded is not None and bool(excluded.any()):
             index, features = _kept_inputs(feats, excluded)
@@ -134,26 +138,28 @@ class _TrainingAggregates(torch.autograd.Function):
             # tie for the max (one of them may be excluded); elsewhere it is the full max, routed with it
             c_pairs = (kept != first) | (first == second)
             c_j, c_b = c_pairs.any(dim=-1).nonzero(as_tuple=True)
-            kept_rows, routes = kept[c_j, c_b], _indicator(features, kept[:, None])
+            c_rows = _rows(c_j, c_b, first)
+            kept_rows, routes = _take(kept, c_rows), _indicator(features, kept[:, None])
         ctx.mark_non_differentiable(d_j, d_b, c_j, c_b)
-        ctx.save_for_backward(feats, first, second, dropped_is_max, d_j, d_b, c_pairs, c_j, c_b, index, routes)
+        ctx.save_for_backward(feats, first, second, dropped_is_max, d_j, d_rows, c_pairs, c_rows, index, routes)
         return first, dropped, kept_rows, d_j, d_b, c_j, c_b
 
     @staticmethod
     def backward(ctx, g_first, g_dropped, g_kept, *_):
-        feats, first, second, dropped_is_max, d_j, d_b, c_pairs, c_j, c_b, index, routes = ctx.saved_tensors
+        feats, first, second, dropped_is_max, d_j, d_rows, c_pairs, c_rows, index, routes = ctx.saved_tensors
         to_max = g_first.clone()  # [J, B, F]: what the arg-max of every (output, sample, feature) receives
         to_second = torch.zeros_like(to_max)
-        if len(d_j):
-            rows_max = dropped_is_max[d_j, d_b]
-            to_max[d_j, d_b] += g_dropped.masked_fill(rows_max, 0.0)
-            to_second[d_j, d_b] = g_dropped.masked_fill(~rows_max, 0.0)
+        rows_of = lambda x: x.view(-1, x.shape[-1])  # noqa: E731  [J * B, F], rows written by index
+        if len(d_rows):
+            rows_max = _take(dropped_is_max, d_rows)
+            rows_of(to_max).index_add_(0, d_rows, g_dropped.masked_fill(rows_max, 0.0))
+            rows_of(to_second).index_copy_(0, d_rows, g_dropped.masked_fill(~rows_max, 0.0))
         to_kept = None
-        if len(c_j):
-            rows_own = c_pairs[c_j, c_b]
-            to_max[c_j, c_b] += g_kept.masked_fill(rows_own, 0.0)
+        if len(c_rows):
+            rows_own = _take(c_pairs, c_rows)
+            rows_of(to_max).index_add_(0, c_rows, g_kept.masked_fill(rows_own, 0.0))
             to_kept = torch.zeros_like(to_max)
-            to_kept[c_j, c_b] = g_kept.masked_fill(~rows_own, 0.0)
+            rows_of(to_kept).index_copy_(0, c_rows, g_kept.masked_fill(~rows_own, 0.0))
         grad = _indicator(feats, first[:, None]).mul_(to_max[:, None])
         p_j, p_b, p_f = dropped_is_max.nonzero(as_tuple=True)  # the runner-up takes the dropped arg-max's place
         if len(p_j):
@@ -165,6 +171,17 @@ class _TrainingAggregates(torch.autograd.Function):
             j, i = grad.shape[:2]  # index_add_ of whole [B, F] blocks: ~10x faster than scatter_add_ along dim 1
             grad.view(j * i, -1).index_add_(0, _flat_rows(index, i), (routes * to_kept[:, None]).reshape(index.numel(), -1))
         return grad, None, None
+
+
+def _rows(out_j: torch.Tensor, sample: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """Flat row numbers ``j * B + b`` of (output, sample) rows in a [J, B, F] tensor like ``like``."""
+    return out_j * like.shape[1] + sample
+
+
+def _take(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """Rows ``rows`` (flat, :func:`_rows`) of a [J, B, F] tensor: [N, F], by one ``index_select`` of whole
+    rows (advanced indexing with two index tensors is several times slower)."""
+    return x.reshape(-1, x.shape[-1]).index_select(0, rows)
 
 
 def training_aggregates(feats: torch.Tensor, drop: torch.Tensor, excluded: torch.Tensor | None
