@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from causal.cdl_max import _MaxAndDropOne, masked_max, max_and_runner_up, training_aggregates
 from causal.factored import FactorCodec, FactorLayout
@@ -156,6 +157,7 @@ class _ScalarNetworks(torch.autograd.Function):
         return out
 
     @staticmethod
+    @once_differentiable  # the saved hidden layer has no graph: a second derivative would miss terms, so it raises
     def backward(ctx, grad: torch.Tensor):
         xs, h, w2l = ctx.saved_tensors
         k_head, k, k_tail = ctx.inputs
@@ -166,10 +168,10 @@ class _ScalarNetworks(torch.autograd.Function):
         grad_w2 = torch.bmm(h.view(j * k, n, hidden).transpose(1, 2), g)
         gh = torch.ops.aten.threshold_backward(torch.bmm(g, w2l.transpose(1, 2)).view(j, k, n, hidden), h, 0)
         grad_w1 = torch.matmul(xs.transpose(2, 3), gh)  # [1, K, 1, B] @ [J, K, B, H]: the sum over samples
-        fp32 = grad.dtype  # the parameters' (fp32 when the products are in ``low``)
+        dtype = grad.dtype  # the parameters' (fp32 when the products are in ``low``)
         grad_head = grad[:, :k_head] if k_head and ctx.needs_input_grad[6] else None
         grad_tail = grad[:, k_head + k:] if k_tail and ctx.needs_input_grad[7] else None
-        return (None, grad_w1.to(fp32), gh.sum(dim=2, keepdim=True).to(fp32), grad_w2.to(fp32), grad_b2, None,
+        return (None, grad_w1.to(dtype), gh.sum(dim=2, keepdim=True).to(dtype), grad_w2.to(dtype), grad_b2, None,
                 grad_head, grad_tail)
 
 
@@ -197,11 +199,11 @@ class FeatureGroup(nn.Module):
               head: torch.Tensor | None = None, tail: torch.Tensor | None = None) -> torch.Tensor:
         """Inputs [B, K, width] -> features [J, K, B, F] (fp32; ``low``: see :func:`_affine`).
 
-        ``fused``: scalar inputs' networks by :class:`_ScalarNetworks` (CDL's training update;
-        first-order gradients of the parameters only, so not where a gradient of the inputs or a
-        second-order one is taken), placed between the features ``head`` and ``tail`` of the other
-        inputs (concatenated along inputs). Other inputs than scalars, or inputs that need a gradient,
-        take the plain path and the concatenation."""
+        ``fused``: scalar inputs' networks by :class:`_ScalarNetworks` (CDL's :meth:`CDLModel.features`,
+        for training and evaluation: the same features; first-order gradients of the parameters only,
+        so not where a gradient of the inputs is taken, and a second-order one raises), placed between
+        the features ``head`` and ``tail`` of the other inputs (concatenated along inputs). Other
+        inputs than scalars, or inputs that need a gradient, take the plain path and the concatenation."""
         if fused and self.shape[2] == 1 and not x.requires_grad:
             return _ScalarNetworks.apply(x[:, :, 0], self.w1, self.b1, self.w2, self.b2, low, head, tail)
         if head is not None or tail is not None:

@@ -127,7 +127,7 @@ class _TrainingAggregates(torch.autograd.Function):
                 + torch.arange(b, device=feats.device)).reshape(-1)
         dropped_is_max = feats.reshape(-1, f).index_select(0, rows).view(j, b, f) == first
         d_j, d_b = dropped_is_max.any(dim=-1).nonzero(as_tuple=True)
-        d_rows = _rows(d_j, d_b, first)
+        d_rows = _sample_rows(d_j, d_b, first)
         dropped = torch.where(_take(dropped_is_max, d_rows), _take(second, d_rows), _take(first, d_rows))
         c_j = c_b = c_rows = d_j[:0]
         kept_rows, c_pairs, index, routes = first.new_zeros(0, first.shape[-1]), dropped_is_max & False, None, None
@@ -138,28 +138,28 @@ class _TrainingAggregates(torch.autograd.Function):
             # tie for the max (one of them may be excluded); elsewhere it is the full max, routed with it
             c_pairs = (kept != first) | (first == second)
             c_j, c_b = c_pairs.any(dim=-1).nonzero(as_tuple=True)
-            c_rows = _rows(c_j, c_b, first)
+            c_rows = _sample_rows(c_j, c_b, first)
             kept_rows, routes = _take(kept, c_rows), _indicator(features, kept[:, None])
         ctx.mark_non_differentiable(d_j, d_b, c_j, c_b)
-        ctx.save_for_backward(feats, first, second, dropped_is_max, d_j, d_rows, c_pairs, c_rows, index, routes)
+        ctx.save_for_backward(feats, first, second, dropped_is_max, d_rows, c_pairs, c_rows, index, routes)
         return first, dropped, kept_rows, d_j, d_b, c_j, c_b
 
     @staticmethod
     def backward(ctx, g_first, g_dropped, g_kept, *_):
-        feats, first, second, dropped_is_max, d_j, d_rows, c_pairs, c_rows, index, routes = ctx.saved_tensors
-        to_max = g_first.clone()  # [J, B, F]: what the arg-max of every (output, sample, feature) receives
+        feats, first, second, dropped_is_max, d_rows, c_pairs, c_rows, index, routes = ctx.saved_tensors
+        # [J, B, F]: what the arg-max of every (output, sample, feature) receives (contiguous: written by rows)
+        to_max = g_first.clone(memory_format=torch.contiguous_format)
         to_second = torch.zeros_like(to_max)
-        rows_of = lambda x: x.view(-1, x.shape[-1])  # noqa: E731  [J * B, F], rows written by index
         if len(d_rows):
             rows_max = _take(dropped_is_max, d_rows)
-            rows_of(to_max).index_add_(0, d_rows, g_dropped.masked_fill(rows_max, 0.0))
-            rows_of(to_second).index_copy_(0, d_rows, g_dropped.masked_fill(~rows_max, 0.0))
+            _row_view(to_max).index_add_(0, d_rows, g_dropped.masked_fill(rows_max, 0.0))
+            _row_view(to_second).index_copy_(0, d_rows, g_dropped.masked_fill(~rows_max, 0.0))
         to_kept = None
         if len(c_rows):
             rows_own = _take(c_pairs, c_rows)
-            rows_of(to_max).index_add_(0, c_rows, g_kept.masked_fill(rows_own, 0.0))
+            _row_view(to_max).index_add_(0, c_rows, g_kept.masked_fill(rows_own, 0.0))
             to_kept = torch.zeros_like(to_max)
-            rows_of(to_kept).index_copy_(0, c_rows, g_kept.masked_fill(~rows_own, 0.0))
+            _row_view(to_kept).index_copy_(0, c_rows, g_kept.masked_fill(~rows_own, 0.0))
         grad = _indicator(feats, first[:, None]).mul_(to_max[:, None])
         p_j, p_b, p_f = dropped_is_max.nonzero(as_tuple=True)  # the runner-up takes the dropped arg-max's place
         if len(p_j):
@@ -173,14 +173,19 @@ class _TrainingAggregates(torch.autograd.Function):
         return grad, None, None
 
 
-def _rows(out_j: torch.Tensor, sample: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """Flat row numbers ``j * B + b`` of (output, sample) rows in a [J, B, F] tensor like ``like``."""
+def _sample_rows(out_j: torch.Tensor, sample: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """Row numbers ``j * B + b`` of (output, sample) pairs in :func:`_row_view` of a [J, B, F] tensor ``like``."""
     return out_j * like.shape[1] + sample
 
 
+def _row_view(x: torch.Tensor) -> torch.Tensor:
+    """A [J, B, F] tensor as [J * B, F] rows (a view), read and written by whole rows."""
+    return x.view(-1, x.shape[-1])
+
+
 def _take(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """Rows ``rows`` (flat, :func:`_rows`) of a [J, B, F] tensor: [N, F], by one ``index_select`` of whole
-    rows (advanced indexing with two index tensors is several times slower)."""
+    """Rows ``rows`` (:func:`_sample_rows`) of a [J, B, F] tensor: [N, F], by one ``index_select`` of
+    whole rows (advanced indexing with two index tensors is several times slower)."""
     return x.reshape(-1, x.shape[-1]).index_select(0, rows)
 
 
