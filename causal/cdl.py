@@ -141,10 +141,11 @@ class _ScalarNetworks(torch.autograd.Function):
         k_head = 0 if head is None else head.shape[1]
         k_tail = 0 if tail is None else tail.shape[1]
         ctx.inputs = (k_head, k, k_tail)
-        product = torch.bmm(h.view(j * k, n, hidden), w2l) if low is not None else \
-            torch.baddbmm(b2, h.view(j * k, n, hidden), w2)
+        hs = h.view(j * k, n, hidden)
         if not k_head and not k_tail:
-            return product.to(b2.dtype).add_(b2).view(j, k, n, -1) if low is not None else product.view(j, k, n, -1)
+            return _affine(b2, hs, w2l, low).view(j, k, n, -1)
+        # into the concatenation: the bf16 product is cast by the copy, its fp32 bias added in place
+        product = torch.bmm(hs, w2l) if low is not None else torch.baddbmm(b2, hs, w2l)
         out = torch.empty(j, k_head + k + k_tail, n, product.shape[-1], dtype=b2.dtype, device=x.device)
         if k_head:
             out[:, :k_head] = head

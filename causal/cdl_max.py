@@ -123,8 +123,7 @@ class _TrainingAggregates(torch.autograd.Function):
     def forward(ctx, feats: torch.Tensor, drop: torch.Tensor, excluded: torch.Tensor | None):
         first, second = (x[:, 0] for x in _top_two(feats))  # [J, B, F]
         j, i, b, f = feats.shape  # the dropped input's features: whole [F] rows of a [J * I * B, F] view
-        rows = ((torch.arange(j, device=feats.device)[:, None] * i + drop[:, 0, :, 0]) * b
-                + torch.arange(b, device=feats.device)).reshape(-1)
+        rows = (_flat_rows(drop[:, 0, :, 0], i).view(j, b) * b + torch.arange(b, device=feats.device)).reshape(-1)
         dropped_is_max = feats.reshape(-1, f).index_select(0, rows).view(j, b, f) == first
         d_j, d_b = dropped_is_max.any(dim=-1).nonzero(as_tuple=True)
         d_rows = _sample_rows(d_j, d_b, first)
