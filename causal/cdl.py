@@ -398,7 +398,8 @@ class CDLModel(nn.Module):
         The heads run on the full aggregate of every (output, sample) and on the dropped / causal
         aggregates only where they differ from it (:func:`causal.cdl_max.training_aggregates`);
         every other row's term is the full one's NLL, the same value and gradient as running the
-        heads on it (tests/causal/test_cdl.py). The products run in ``cfg.train_precision``
+        heads on it (tests/causal/test_cdl.py); all those rows go through the heads in one pass
+        (:meth:`_packed_nll`). The products run in ``cfg.train_precision``
         (:func:`_affine`); everything else in fp32."""
         low = _LOW[self.cfg.train_precision]
         feats = self.features(state, action, low)
@@ -406,20 +407,14 @@ class CDLModel(nn.Module):
                              generator=generator).to(feats.device)  # drawn on the CPU: the same draws on any device
         excluded = None if parents is None else ~self.to_group_order(parents)
         first, dropped, kept, d_j, d_b, c_j, c_b = training_aggregates(feats, drop, excluded)
-        cat, delta = self._targets(state, next_state)
-        full = self._nll_of(self.predict(first[:, None], low), cat, delta)[:, 0]
-        terms = [full, self._replace_rows(full, d_j, d_b, dropped, cat, delta, low)]
-        if parents is not None:
-            terms.append(self._replace_rows(full, c_j, c_b, kept, cat, delta, low))
+        groups = [(d_j, d_b, dropped)] + ([(c_j, c_b, kept)] if parents is not None else [])
+        # one pass of the heads over every row of every term (the full aggregates lead): three passes
+        # of small products cost three times the operators' overhead, which at batch 64 is most of it
+        nll, at = self._packed_nll(first, groups, *self._targets(state, next_state), low)
+        full = nll.view(self.num_outputs, -1)[:, : state.shape[0]]
+        terms = [full] + [full.index_put((out_j, sample), nll[places]) if len(out_j) else full
+                          for (out_j, sample, _), places in zip(groups, at)]
         return torch.stack(terms, dim=1)
-
-    def _replace_rows(self, full: torch.Tensor, out_j: torch.Tensor, sample: torch.Tensor, rows: torch.Tensor,
-                      cat: torch.Tensor | None, delta: torch.Tensor | None,
-                      low: torch.dtype | None = None) -> torch.Tensor:
-        """``full`` [J, B] with entries (out_j, sample) replaced by the heads' NLL of ``rows``."""
-        if not len(out_j):
-            return full
-        return full.index_put((out_j, sample), self._nll_of_rows(out_j, sample, rows, cat, delta, low))
 
     def constant_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """[I] bool, graph column order: inputs (state factors, then the action) that take a single
@@ -474,23 +469,50 @@ class CDLModel(nn.Module):
         return gain
 
     def _nll_of_rows(self, out_j: torch.Tensor, sample: torch.Tensor, aggregated_rows: torch.Tensor,
-                     cat: torch.Tensor | None, delta: torch.Tensor | None,
-                     low: torch.dtype | None = None) -> torch.Tensor:
+                     cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:
         """NLL ``[N]`` of output ``out_j[n]``'s head on ``aggregated_rows[n]`` against sample ``sample[n]``'s
-        target; ``out_j`` sorted (as ``nonzero`` gives it), rows packed per output for the heads."""
-        counts = torch.bincount(out_j, minlength=self.num_outputs)
-        row = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
-        rows = int(counts.max())
-        aggregated = aggregated_rows.new_zeros(self.num_outputs, rows, aggregated_rows.shape[-1])
-        aggregated[out_j, row] = aggregated_rows
-        samples = torch.zeros(self.num_outputs, rows, dtype=torch.long, device=out_j.device)
-        samples[out_j, row] = sample
+        target; ``out_j`` sorted (as ``nonzero`` gives it)."""
+        nll, (places,) = self._packed_nll(None, [(out_j, sample, aggregated_rows)], cat, delta)
+        return nll[places]
+
+    def _packed_nll(self, lead: torch.Tensor | None,
+                    groups: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+                    cat: torch.Tensor | None, delta: torch.Tensor | None,
+                    low: torch.dtype | None = None) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The heads' NLL of many aggregates in one pass: ``lead`` [J, L, F] (every output's aggregate
+        of samples 0..L-1; None: L = 0), then each group ``(out_j [N], sample [N], rows [N, F])``: row
+        n is output ``out_j[n]``'s aggregate of sample ``sample[n]`` (``out_j`` sorted, as ``nonzero``
+        gives it). Rows are packed per output after the lead, each group padded to the most rows any
+        output has in it: NLL ``[J * W]`` (row-major [J, W]) and, per group, the [N] positions of its
+        rows' NLL in it."""
+        j = self.num_outputs
+        width = 0 if lead is None else lead.shape[1]
+        places = []
+        for out_j, _, _ in groups:
+            counts = torch.bincount(out_j, minlength=j)
+            column = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
+            places.append((out_j, column + width))
+            width += int(counts.max()) if len(out_j) else 0
+        places = [out_j * width + column for out_j, column in places]
+        like = lead if lead is not None else groups[0][2]
+        feature = like.shape[-1]
+        aggregated = like.new_zeros(j * width, feature)
+        samples = torch.zeros(j * width, dtype=torch.long, device=like.device)
+        if lead is not None:
+            aggregated.view(j, width, feature)[:, : lead.shape[1]] = lead
+            samples.view(j, width)[:, : lead.shape[1]] = torch.arange(lead.shape[1], device=like.device)
+        for (_, sample, rows), at in zip(groups, places):
+            if len(at):  # whole rows into a flat [J * W, F] view (two index tensors are several times slower)
+                aggregated.index_copy_(0, at, rows)
+                samples[at] = sample
+        samples = samples.view(j, width)
         codec = self.codec
         cat_rows = cat.gather(1, samples[codec.cat_index]) if cat is not None else None
         delta_rows = None
         if delta is not None:
             delta_rows = delta.gather(1, samples[codec.cont_index, :, None].expand(-1, -1, delta.shape[-1]))
-        return self._nll_of(self.predict(aggregated[:, None], low), cat_rows, delta_rows)[:, 0][out_j, row]
+        out = self.predict(aggregated.view(j, 1, width, feature), low)
+        return self._nll_of(out, cat_rows, delta_rows).view(-1), places
 
     @torch.no_grad()
     def cmi(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
