@@ -134,8 +134,11 @@ class _ScalarNetworks(torch.autograd.Function):
         j, k, _, hidden = w1.shape
         n = x.shape[0]
         dtype = low or w1.dtype
-        xs = x.T.contiguous()[None, :, :, None].to(dtype)  # [1, K, B, 1]; contiguous, so h is
-        h = torch.addcmul(b1.to(dtype), xs, w1.to(dtype)).relu_()  # [J, K, B, H]
+        xs = x.T.contiguous()[None, :, :, None]  # [1, K, B, 1]; contiguous, so h is
+        # the first layer (an outer product, no matmul) in fp32 and h rounded once: a bf16 addcmul
+        # converts every operand per element and took twice as long as this and the cast together
+        h = torch.addcmul(b1, xs, w1).relu_().to(dtype)  # [J, K, B, H]
+        xs = xs.to(dtype)
         w2l = w2.to(dtype)
         ctx.save_for_backward(xs, h, w2l)
         k_head = 0 if head is None else head.shape[1]
@@ -211,10 +214,7 @@ class FeatureGroup(nn.Module):
             return torch.cat([g for g in (head, self.dense(x, low), tail) if g is not None], dim=1)
         if self.shape[2] == 1:  # scalar inputs: the first layer is an outer product, no matmul needed
             x = x[None, :, :, 0].transpose(1, 2).contiguous()[..., None]  # contiguous: then so is h
-            if low is None:
-                h = torch.addcmul(self.b1, x, self.w1)
-            else:  # made in the low dtype, so the second layer's product needs no cast of it
-                h = torch.addcmul(self.b1.to(low), x.to(low), self.w1.to(low))
+            h = torch.addcmul(self.b1, x, self.w1)  # in fp32, as _ScalarNetworks makes it
         else:
             h = torch.einsum("bkw,jkwh->jkbh", x, self.w1) + self.b1
         return self._second_layer(torch.relu(h), low)
