@@ -31,14 +31,18 @@ def _indicator(x: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
 
 def _top_two(feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The largest and second-largest feature over inputs (dim 1), each [J, 1, B, F], by one running
-    max/min over the inputs: no full-size temporaries (with no ties, the second is the max without
-    the arg-max input, as in :func:`max_and_runner_up`)."""
-    first = feats[:, 0].clone()
-    second = torch.full_like(first, float("-inf"))
-    smaller = torch.empty_like(first)
-    for i in range(1, feats.shape[1]):
-        torch.minimum(first, feats[:, i], out=smaller)
-        torch.maximum(second, smaller, out=second)
+    pass over the inputs: no full-size temporaries (with no ties, the second is the max without the
+    arg-max input, as in :func:`max_and_runner_up`; with ties, the tied value).
+
+    Each input x updates the pair by two operators: ``second = clamp(x, second, first)``, which is
+    ``max(second, min(first, x))`` because second <= first, then ``first = max(first, x)``; written
+    as min, then max, it took three, a temporary, and ~1.45x as long."""
+    if feats.shape[1] == 1:
+        return feats[:, :1].clone(), torch.full_like(feats[:, :1], float("-inf"))
+    first = torch.maximum(feats[:, 0], feats[:, 1])
+    second = torch.minimum(feats[:, 0], feats[:, 1])
+    for i in range(2, feats.shape[1]):
+        torch.clamp(feats[:, i], min=second, max=first, out=second)
         torch.maximum(first, feats[:, i], out=first)
     return first[:, None], second[:, None]
 
@@ -111,8 +115,10 @@ def _kept_inputs(feats: torch.Tensor, excluded: torch.Tensor) -> tuple[torch.Ten
     # index expanded over B and F, which indexes element by element
     kept = feats.reshape(j * i, *feats.shape[2:]).index_select(0, _flat_rows(index, i))
     kept = kept.view(j, index.shape[1], *feats.shape[2:])
-    padding = torch.arange(index.shape[1], device=feats.device) >= counts[:, None]
-    return index, kept.masked_fill_(padding[:, :, None, None], float("-inf"))
+    padding = (torch.arange(index.shape[1], device=feats.device) >= counts[:, None]).view(-1).nonzero().squeeze(1)
+    # only the padded [B, F] blocks are written (a masked_fill_ with a broadcast mask visits every element)
+    kept.view(-1, kept[0, 0].numel()).index_fill_(0, padding, float("-inf"))
+    return index, kept
 
 
 class _TrainingAggregates(torch.autograd.Function):
