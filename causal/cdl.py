@@ -179,6 +179,44 @@ class _ScalarNetworks(torch.autograd.Function):
                 grad_head, grad_tail)
 
 
+class _Heads(torch.autograd.Function):
+    """The heads' three layers of :meth:`CDLModel.predict` with products in ``low`` (the training
+    update's bf16), ``relu(x w1 + b1) -> relu(. w2 + b2) -> . w3 + b3``, each bias added in fp32,
+    with a hand-written backward.
+
+    Forward and gradients are the values autograd gives for the same chain (tests/causal/test_cdl.py):
+    every gradient that meets a product is rounded to ``low`` there either way, and a hidden layer's
+    gradient leaves its product already in ``low``, so it is masked by the ReLU and summed for its
+    bias there (in fp32 accumulation) rather than cast to fp32 and back. At batch 64 the heads' products are
+    small and autograd's casts between them were a large part of their cost."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, b2: torch.Tensor,
+                w3: torch.Tensor, b3: torch.Tensor, low: torch.dtype) -> torch.Tensor:
+        xl, w1l, w2l, w3l = x.to(low), w1.to(low), w2.to(low), w3.to(low)
+        h1 = torch.bmm(xl, w1l).to(torch.float32).add_(b1).relu_().to(low)
+        h2 = torch.bmm(h1, w2l).to(torch.float32).add_(b2).relu_().to(low)
+        ctx.save_for_backward(xl, h1, h2, w1l, w2l, w3l)
+        return torch.bmm(h2, w3l).to(torch.float32).add_(b3)
+
+    @staticmethod
+    @once_differentiable  # the saved layers have no graph: a second derivative would miss terms, so it raises
+    def backward(ctx, grad: torch.Tensor):
+        xl, h1, h2, w1l, w2l, w3l = ctx.saved_tensors
+        fp32 = torch.float32
+        gb3 = grad.sum(dim=1, keepdim=True)
+        g = grad.to(xl.dtype)
+        gw3 = torch.bmm(h2.transpose(1, 2), g).to(fp32)
+        g = torch.ops.aten.threshold_backward(torch.bmm(g, w3l.transpose(1, 2)), h2, 0)
+        gb2 = g.sum(dim=1, keepdim=True, dtype=fp32)
+        gw2 = torch.bmm(h1.transpose(1, 2), g).to(fp32)
+        g = torch.ops.aten.threshold_backward(torch.bmm(g, w2l.transpose(1, 2)), h1, 0)
+        gb1 = g.sum(dim=1, keepdim=True, dtype=fp32)
+        gw1 = torch.bmm(xl.transpose(1, 2), g).to(fp32)
+        g = torch.bmm(g, w1l.transpose(1, 2))
+        return g.to(fp32), gw1, gb1, gw2, gb2, gw3, gb3, None
+
+
 class FeatureGroup(nn.Module):
     """Feature networks phi^{j,k}: width -> hidden -> feature, for K inputs of one kind and every output j.
 
@@ -344,6 +382,9 @@ class CDLModel(nn.Module):
         ``low``: the products' dtype, :func:`_affine`)."""
         j, k, b, f = aggregated.shape
         x = aggregated.reshape(j, k * b, f)
+        if low is not None:
+            return _Heads.apply(x, self.head_w1, self.head_b1, self.head_w2, self.head_b2, self.head_w3,
+                                self.head_b3, low).view(j, k, b, -1)
         x = torch.relu(_affine(self.head_b1, x, self.head_w1, low))
         x = torch.relu(_affine(self.head_b2, x, self.head_w2, low))
         return _affine(self.head_b3, x, self.head_w3, low).view(j, k, b, -1)

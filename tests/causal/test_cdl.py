@@ -483,6 +483,39 @@ def test_scalar_networks_written_between_the_other_groups_equal_the_plain_path(d
         torch.testing.assert_close(fused_grads[name], grad, rtol=tol, atol=tol * float(grad.abs().max()), msg=name)
 
 
+def test_bf16_heads_hand_written_backward_equals_autograd() -> None:
+    """The training update's heads (:class:`causal.cdl._Heads`, bf16 products, hand-written backward)
+    give the outputs and every gradient autograd gives for the same chain of :func:`causal.cdl._affine`
+    products and ReLUs: the same roundings, so equal up to the order of the bias gradients' sums."""
+    from causal.cdl import _affine
+    torch.manual_seed(4)
+    model = CDLModel(LAYOUT, CDLConfig(feature_hidden=16, feature_dim=16, predictor_hidden=16))
+    x = torch.randn(model.num_outputs, 2, 40, 16)
+    weights = torch.randn(model.num_outputs, 2, 40, LAYOUT.head_width)
+    low = torch.bfloat16
+
+    def autograd_heads(aggregated: torch.Tensor) -> torch.Tensor:
+        j, k, b, f = aggregated.shape
+        h = aggregated.reshape(j, k * b, f)
+        h = torch.relu(_affine(model.head_b1, h, model.head_w1, low))
+        h = torch.relu(_affine(model.head_b2, h, model.head_w2, low))
+        return _affine(model.head_b3, h, model.head_w3, low).view(j, k, b, -1)
+
+    results = []
+    for heads in (autograd_heads, lambda a: model.predict(a, low)):
+        model.zero_grad()
+        aggregated = x.clone().requires_grad_()
+        out = heads(aggregated)
+        (out * weights).sum().backward()
+        grads = {n: p.grad.clone() for n, p in model.named_parameters() if n.startswith("head_")}
+        results.append((out.detach(), aggregated.grad, grads))
+    (out, x_grad, grads), (ours, our_x_grad, our_grads) = results
+    assert torch.equal(ours, out) and len(grads) == 6
+    torch.testing.assert_close(our_x_grad, x_grad, rtol=1e-6, atol=1e-6 * float(x_grad.abs().max()))
+    for name, grad in grads.items():
+        torch.testing.assert_close(our_grads[name], grad, rtol=1e-6, atol=1e-6 * float(grad.abs().max()), msg=name)
+
+
 @pytest.mark.parametrize("grad_clip", [1e-3, 1e6])  # clipping every update, and never
 def test_the_clip_applied_by_adam_equals_clip_grad_norm_then_adam(grad_clip: float) -> None:
     """CDLTrainer clips by fused Adam's ``grad_scale`` (no pass of its own over the gradients): the
