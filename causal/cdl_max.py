@@ -174,11 +174,11 @@ class _TrainingAggregates(torch.autograd.Function):
             # and the gradient added where they equal the runner-up (one element per column without ties):
             # an index_put_ of the whole [P, I] columns into a permuted view was ~4x slower
             at = base[:, None] + torch.arange(i, device=feats.device) * block
-            column = feats.view(-1).index_select(0, at.view(-1)).view(-1, i)
+            column = feats.reshape(-1).index_select(0, at.view(-1)).view(-1, i)
             q, k = (column == second.reshape(-1)[cell][:, None]).nonzero(as_tuple=True)
             grad.view(-1).index_add_(0, base[q] + k * block, g_dropped[row[q], p_f[q]])
-        if to_kept is not None:  # to the kept inputs holding the causal max
-            j, i = grad.shape[:2]  # index_add_ of whole [B, F] blocks: ~10x faster than scatter_add_ along dim 1
+        if to_kept is not None:  # to the kept inputs holding the causal max; index_add_ of whole [B, F]
+            # blocks: ~10x faster than scatter_add_ along dim 1
             grad.view(j * i, -1).index_add_(0, _flat_rows(index, i), (routes * to_kept[:, None]).reshape(index.numel(), -1))
         return grad, None, None
 
