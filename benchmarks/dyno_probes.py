@@ -74,18 +74,20 @@ def object_slots(model: SlotModel, frames: np.ndarray, labels: np.ndarray) -> to
 
 
 def train_split(split: StaticDynamicSplit, slots: torch.Tensor, budget: Budget, seed: int) -> dict[str, float]:
-    """Eqs. 7.3-7.5 on sequences ``[E, L, K, d]``: a critic step, then the static and dynamic parts."""
+    """Eqs. 7.3-7.5 on sequences ``[E, L, K, d]``: ``critic_steps`` critic steps (each on its own
+    batch), then the static and dynamic parts on the last one."""
     critic = torch.optim.Adam(split.critic.parameters(), lr=split.config.lr)
     parts = [p for name, p in split.named_parameters() if not name.startswith("critic.")]
     features = torch.optim.Adam(parts, lr=split.config.lr)
     batches = torch.Generator().manual_seed(seed)
     losses = None
     for u in range(1, budget.split_updates + 1):
-        batch = slots[torch.randint(len(slots), (budget.split_batch,), generator=batches)]
-        losses = split.losses(batch)
-        critic.zero_grad()
-        losses.critic.backward()
-        critic.step()
+        for _ in range(split.config.critic_steps):
+            batch = slots[torch.randint(len(slots), (budget.split_batch,), generator=batches)]
+            losses = split.losses(batch)
+            critic.zero_grad()
+            losses.critic.backward()
+            critic.step()
         losses = split.losses(batch)
         features.zero_grad()
         (losses.static + losses.dynamic).backward()
@@ -164,10 +166,12 @@ def main(argv: list[str] | None = None) -> None:
     def split_flags(p: argparse.ArgumentParser) -> None:
         for name in ("disentangle_weight", "lecam_weight"):
             p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(SplitConfig(), name))
+        p.add_argument("--critic-steps", type=int, default=SplitConfig().critic_steps,
+                       help="critic updates per feature update (eq. 7.5)")
 
     def one_seed(seed: int, budget: Budget, args: argparse.Namespace, _save: object) -> dict[str, Any]:
         return run_seed(seed, budget, SplitConfig(disentangle_weight=args.disentangle_weight,
-                                                  lecam_weight=args.lecam_weight))
+                                                  lecam_weight=args.lecam_weight, critic_steps=args.critic_steps))
 
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/probes.json"),
                run_seed=one_seed, table=table, add_arguments=split_flags)

@@ -38,6 +38,16 @@ class SplitConfig:
     lecam_decay: float = doc(0.99, "decay of the critic's running output means LeCam pulls towards")
     disentangle_weight: float = doc(0.1, "weight of Disc(c, v) in eq. 7.4")
     lr: float = doc(1e-3, "Adam learning rate of every part")
+    critic_steps: int = doc(1, "critic updates (eq. 7.5) per update of the features (eqs. 7.3-7.4); WGAN's "
+                               "usual is 5, the chapter does not say")
+
+    def __post_init__(self) -> None:
+        if min(self.static_dim, self.dynamic_dim, self.hidden, self.critic_steps) < 1:
+            raise ValueError("static_dim, dynamic_dim, hidden and critic_steps must be >= 1")
+        if not (self.temperature > 0 and self.lr > 0 and 0 <= self.lecam_decay < 1):
+            raise ValueError("temperature and lr must be > 0 and lecam_decay in [0, 1)")
+        if self.lecam_weight < 0 or self.disentangle_weight < 0:
+            raise ValueError("lecam_weight and disentangle_weight must be >= 0")
 
 
 def _mlp(inputs: int, hidden: int, outputs: int) -> nn.Sequential:

@@ -60,3 +60,9 @@ def test_the_probe_separates_separable_classes_and_bins_cover_the_range() -> Non
     assert linear_probe(inputs[:200], labels[:200], inputs[200:], labels[200:], 3) == 1.0
     assert linear_probe(torch.randn(200, 3), labels[:200], torch.randn(100, 3), labels[200:], 3) < 0.6
     assert bins(torch.tensor([0.0, 0.05, 0.5, 0.99, 1.0])).tolist() == [0, 0, 5, 9, 9]
+
+
+@pytest.mark.parametrize("bad", [{"critic_steps": 0}, {"temperature": 0.0}, {"lecam_decay": 1.0}, {"disentangle_weight": -1.0}])
+def test_split_config_rejects_bad_values(bad: dict) -> None:
+    with pytest.raises(ValueError):
+        SplitConfig(**bad)
