@@ -168,10 +168,14 @@ def main(argv: list[str] | None = None) -> None:
             p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(SplitConfig(), name))
         p.add_argument("--critic-steps", type=int, default=SplitConfig().critic_steps,
                        help="critic updates per feature update (eq. 7.5)")
+        p.add_argument("--critic-spectral-norm", action="store_true", help="a 1-Lipschitz critic (SplitConfig)")
+        p.add_argument("--critic-standardise", action="store_true", help="the critic's inputs standardised (SplitConfig)")
 
     def one_seed(seed: int, budget: Budget, args: argparse.Namespace, _save: object) -> dict[str, Any]:
         return run_seed(seed, budget, SplitConfig(disentangle_weight=args.disentangle_weight,
-                                                  lecam_weight=args.lecam_weight, critic_steps=args.critic_steps))
+                                                  lecam_weight=args.lecam_weight, critic_steps=args.critic_steps,
+                                                  critic_spectral_norm=args.critic_spectral_norm,
+                                                  critic_standardise=args.critic_standardise))
 
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/probes.json"),
                run_seed=one_seed, table=table, add_arguments=split_flags)

@@ -40,6 +40,14 @@ class SplitConfig:
     lr: float = doc(1e-3, "Adam learning rate of every part")
     critic_steps: int = doc(1, "critic updates (eq. 7.5) per update of the features (eqs. 7.3-7.4); WGAN's "
                                "usual is 5, the chapter does not say")
+    critic_spectral_norm: bool = doc(False, "spectral normalisation of the critic's layers, which makes it "
+                                            "1-Lipschitz as a Wasserstein critic must be (the chapter names "
+                                            "only LeCam; without a bound the features can fool the critic by "
+                                            "moving v where it scores low instead of removing c from it)")
+    critic_standardise: bool = doc(False, "the critic reads (c, v) standardised per channel over the batch "
+                                          "(statistics with gradient): a channel the features shrink is "
+                                          "still seen at full scale, as a linear probe on standardised "
+                                          "features sees it (not in the chapter)")
 
     def __post_init__(self) -> None:
         if min(self.static_dim, self.dynamic_dim, self.hidden, self.critic_steps) < 1:
@@ -70,11 +78,19 @@ class StaticDynamicSplit(nn.Module):
         self.dynamic = _mlp(slot_dim, config.hidden, config.dynamic_dim)
         self.reconstruct = _mlp(config.static_dim + config.dynamic_dim, config.hidden, slot_dim)
         self.critic = _mlp(config.static_dim + config.dynamic_dim, config.hidden, 1)
+        if config.critic_spectral_norm:
+            for index, layer in enumerate(self.critic):
+                if isinstance(layer, nn.Linear):
+                    self.critic[index] = nn.utils.parametrizations.spectral_norm(layer)
         self.register_buffer("mean_same", torch.zeros(()))
         self.register_buffer("mean_other", torch.zeros(()))
 
     def disc(self, static: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor:
-        return self.critic(torch.cat([static, dynamic], dim=-1))[..., 0]
+        pair = torch.cat([static, dynamic], dim=-1)
+        if self.config.critic_standardise:
+            flat = pair.reshape(-1, pair.shape[-1])
+            pair = (pair - flat.mean(0)) / (flat.std(0) + 1e-6)
+        return self.critic(pair)[..., 0]
 
     def losses(self, slots: torch.Tensor) -> SplitLosses:
         """Eqs. 7.3-7.5 (means) on slot sequences ``[B, T, K, d_xi]`` whose slot ``k`` is one object over time."""
