@@ -67,6 +67,7 @@ class Args:
     aggregator: str
     no_temporal_attention: bool
     coupling: str
+    static_background: bool
     slot_reconstruction: float
     slot_stage_updates: int
     out: str
@@ -103,6 +104,8 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--mask-prior", choices=MASK_PRIORS, default="none",
                    help="FLAM: Dyn-O's annealed mask prior from the renderer's masks in training (never at "
                         "evaluation); foreground: the same, annealed, saying only which tokens are agents")
+    p.add_argument("--static-background", action="store_true",
+                   help="FLAM: slot 0 (the background's) gets no latent action (FLAMConfig.static_background)")
     p.add_argument("--slot-reconstruction", type=float, default=0.0,
                    help="FLAM: weight of an added reconstruction of e_t from its slots (0: eq. 8.6 alone)")
     p.add_argument("--slot-stage-updates", type=int, default=600,
@@ -277,7 +280,8 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     config = FLAMConfig(num_slots=num_slots, slot_dim=args.slot_dim, action_dim=args.action_dim,
                         beta_kl=args.beta_kl, lr=args.lr, lr_final=args.lr_final,
                         lr_decay_updates=args.updates if args.lr_decay == "cosine" else 0, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator,
-                        temporal_attention=not args.no_temporal_attention, coupling=args.coupling)
+                        temporal_attention=not args.no_temporal_attention, coupling=args.coupling,
+                        static_background=args.static_background)
     autoencoder = FSQAutoencoder(config.levels)
     start = time.time()
     fit_autoencoder(autoencoder, train_frames.flatten(0, 1), args.ae_updates, seed=args.seed)

@@ -54,6 +54,10 @@ class FLAMConfig:
                                     "value from all slots at t and alpha^i (eqs. 8.4-8.5); global: Table "
                                     "8.5's Global-Coupled FLAM (the IDM reads every slot at t and t+1, the "
                                     "FDM every latent action)", choices=("per-slot", "global"))
+    static_background: bool = doc(False, "slot 0 (the background's) has no latent action: its alpha is 0 "
+                                          "and its posterior N(0, I), so its next value comes from the slots "
+                                          "at t alone and a moving object it holds is left unexplained (not in "
+                                          "the chapter, whose slots are all alike)")
     lr: float = doc(1e-3, "Adam learning rate")
     lr_decay_updates: int = doc(0, "cosine decay of the learning rate from lr to lr_final over this many "
                                    "updates, constant after (0: constant lr; not in the chapter)")
@@ -118,8 +122,11 @@ class FLAM(nn.Module):
             reconstructed = self.slot_decoder(slots.flatten(0, 1))[0].view_as(features)
         b, t, k, d = slots.shape
         current, nxt = slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d)
-        mu, log_sigma = self.idm(current, nxt)
-        predicted_slots = self.fdm(current, sample_latent(mu, log_sigma, sample))
+        mu, log_sigma = self._posterior(current, nxt)
+        alpha = sample_latent(mu, log_sigma, sample)
+        if self.config.static_background:
+            alpha = torch.cat([torch.zeros_like(alpha[:, :1]), alpha[:, 1:]], dim=1)
+        predicted_slots = self.fdm(current, alpha)
         predicted = self.aggregator(features[:, :-1].flatten(0, 1), predicted_slots)
         shape = (b, t - 1)
         return LAMOutput(predicted.view(shape + predicted.shape[1:]), mu.view(shape + mu.shape[1:]),
@@ -129,8 +136,17 @@ class FLAM(nn.Module):
         """Posterior means of the latent actions ``[B, T-1, K, d_a]`` of a clip's features."""
         slots, _ = self.factorizer(features)
         k, d = slots.shape[2:]
-        mu, _ = self.idm(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
+        mu, _ = self._posterior(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
         return mu.view(slots.shape[:1] + (-1,) + mu.shape[1:])
+
+    def _posterior(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The IDM's posterior ``[N, K, d_a]`` (eq. 8.4); with ``static_background``, slot 0's is N(0, I)
+        (mean 0, log sigma 0: no KL, and alpha 0 where it is used)."""
+        mu, log_sigma = self.idm(current, nxt)
+        if self.config.static_background:
+            mu = torch.cat([torch.zeros_like(mu[:, :1]), mu[:, 1:]], dim=1)
+            log_sigma = torch.cat([torch.zeros_like(log_sigma[:, :1]), log_sigma[:, 1:]], dim=1)
+        return mu, log_sigma
 
     def step(self, history: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         """e^_{t+1} ``[B, n, d_e]`` from the features so far ``[B, t, n, d_e]`` and alpha_t ``[B, K, d_a]``."""

@@ -294,3 +294,25 @@ def test_cosine_decay_sets_each_updates_learning_rate() -> None:
     assert constant.optimizer.param_groups[0]["lr"] == 2e-3
     with pytest.raises(ValueError, match="lr_decay_updates"):
         FLAMConfig(lr_decay_updates=-1)
+
+
+def test_a_static_background_slot_has_no_latent_action_and_costs_no_kl() -> None:
+    """``static_background``: slot 0's posterior is N(0, I) in training and inference (so its KL is 0)
+    and its alpha is 0, so the prediction does not depend on anything the IDM reads for slot 0;
+    the other slots' latents are the plain model's."""
+    import dataclasses
+    features = _features()
+    torch.manual_seed(0)
+    static = FLAM(dataclasses.replace(CONFIG, static_background=True), TOKENS).eval()
+    torch.manual_seed(0)
+    plain = FLAM(CONFIG, TOKENS).eval()
+    out, reference = static(features, sample=False), plain(features, sample=False)
+    assert torch.all(out.mu[..., 0, :] == 0) and torch.all(out.log_sigma[..., 0, :] == 0)
+    assert float(gaussian_kl(out.mu[..., :1, :], out.log_sigma[..., :1, :]).detach().abs().sum()) == 0.0
+    torch.testing.assert_close(out.mu[..., 1:, :], reference.mu[..., 1:, :])
+    assert torch.all(static.infer(features)[..., 0, :] == 0)
+    seen = []
+    static.fdm.register_forward_pre_hook(lambda module, args: seen.append(args[1].detach().clone()))
+    torch.manual_seed(1)
+    static(features, sample=True)  # sampling draws noise for every slot; slot 0's must not reach the FDM
+    assert torch.all(seen[0][:, 0] == 0) and bool((seen[0][:, 1:] != 0).any())
