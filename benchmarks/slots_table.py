@@ -38,7 +38,7 @@ import torch
 
 from benchmarks.seeded_table import table_main
 from causal.fg_ari import fg_ari
-from causal.slots import TOKEN_MASKS, SlotConfig, SlotModel, SlotTrainer, fit_autoencoder, token_masks
+from causal.slots import MASK_ASSIGNMENTS, TOKEN_MASKS, SlotConfig, SlotModel, SlotTrainer, fit_autoencoder, token_masks
 from envs.chemical_pixels import ChemicalPixelsEnv
 from envs.sprites import SpritesEnv, record_frames
 
@@ -95,6 +95,8 @@ def score(model: SlotModel, frames: torch.Tensor, labels: torch.Tensor, with_mas
     for start in range(0, len(frames), 128):
         f, lab = frames[start : start + 128], labels[start : start + 128]
         allowed = token_masks(lab, model.config.num_slots, rule=model.config.token_mask) if with_masks else None
+        if allowed is not None and model.config.mask_assignment == "matched":
+            allowed = model.match_segments(f, allowed)
         segments = model.segment(f, allowed)
         scores.append(fg_ari(lab.numpy(), segments.numpy()))
         identity.append((segments == lab)[lab > 0].float().numpy())
@@ -102,11 +104,13 @@ def score(model: SlotModel, frames: torch.Tensor, labels: torch.Tensor, with_mas
 
 
 def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: dict[str, Any],
-                  train: tuple[torch.Tensor, torch.Tensor], token_mask: str = "touch") -> tuple[SlotModel, dict[str, Any]]:
+                  train: tuple[torch.Tensor, torch.Tensor], token_mask: str = "touch",
+                  mask_assignment: str = "index") -> tuple[SlotModel, dict[str, Any]]:
     """Slot attention and decoder trained with mask prior ``variant`` (masks per token by ``token_mask``,
     :func:`causal.slots.token_masks`); the model and its training record."""
     torch.manual_seed(seed)
-    config = SlotConfig(num_slots=budget.num_objects + 1, mask_prior=variant, token_mask=token_mask)
+    config = SlotConfig(num_slots=budget.num_objects + 1, mask_prior=variant, token_mask=token_mask,
+                        mask_assignment=mask_assignment)
     model = SlotModel(config, budget.frame_size)
     model.autoencoder.load_state_dict(autoencoder_state)
     model.autoencoder.requires_grad_(False)
@@ -122,7 +126,8 @@ def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: di
 
 
 def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] = lambda _: None,
-             env: str = "chemical-pixels", token_mask: str = "touch") -> dict[str, Any]:
+             env: str = "chemical-pixels", token_mask: str = "touch", mask_assignment: str = "index",
+             variants: tuple[str, ...] = VARIANTS) -> dict[str, Any]:
     """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames of
     ``env``; ``save`` gets the seed's record after each variant."""
     torch.manual_seed(seed)
@@ -132,10 +137,11 @@ def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] =
     base = SlotModel(SlotConfig(num_slots=budget.num_objects + 1), budget.frame_size)
     started = time.perf_counter()
     ae_loss = fit_autoencoder(base.autoencoder, train[0], budget.ae_updates, seed=seed)
-    out: dict[str, Any] = {"seed": seed, "env": env, "token_mask": token_mask,
+    out: dict[str, Any] = {"seed": seed, "env": env, "token_mask": token_mask, "mask_assignment": mask_assignment,
                            "autoencoder": {"final_mse": ae_loss, "seconds": time.perf_counter() - started}}
-    for variant in VARIANTS:
-        model, record = train_variant(variant, seed, budget, base.autoencoder.state_dict(), train, token_mask)
+    for variant in variants:
+        model, record = train_variant(variant, seed, budget, base.autoencoder.state_dict(), train, token_mask,
+                                      mask_assignment)
         fg, identity = score(model, *test, with_masks=False)
         record["slots"], record["slot_identity"] = {"fg_ari": fg}, identity
         if variant == "always":
@@ -152,7 +158,7 @@ def table(results: list[dict[str, Any]]) -> str:
         return f"{np.mean(values):.2f} +- {np.std(values):.2f}" if len(values) > 1 else f"{values[0]:.2f}"
     rows = ["| mask prior | FG-ARI, no masks at inference | FG-ARI, masks at inference | slot identity, no masks "
             "| train s (mean) |", "|---|---|---|---|---|"]
-    for variant in VARIANTS:
+    for variant in (v for v in VARIANTS if all(v in r for r in results)):
         no_masks = [r[variant]["slots"]["fg_ari"] for r in results]
         with_masks = [r[variant]["fg_ari_with_masks"] for r in results if "fg_ari_with_masks" in r[variant]]
         identity = [r[variant]["slot_identity"] for r in results]
@@ -166,11 +172,16 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env", choices=ENVS, default="chemical-pixels", help="the rendered environment")
     p.add_argument("--token-mask", choices=TOKEN_MASKS, default="touch",
                    help="which slots a token may take under the masks (causal.slots.token_masks)")
+    p.add_argument("--mask-assignment", choices=MASK_ASSIGNMENTS, default="index",
+                   help="which slot gets which segment under the masks (SlotConfig.mask_assignment)")
+    p.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="the mask priors to train")
 
 
 def main(argv: list[str] | None = None) -> None:
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/slots/table.json"),
-               run_seed=lambda seed, budget, args, save: run_seed(seed, budget, save, args.env, args.token_mask), table=table,
+               run_seed=lambda seed, budget, args, save: run_seed(seed, budget, save, args.env, args.token_mask,
+                                                                  args.mask_assignment, tuple(args.variants)),
+               table=table,
                add_arguments=_add_arguments)
 
 

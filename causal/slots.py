@@ -29,6 +29,7 @@ from torch import nn
 from proto.settings import doc
 
 MASK_PRIORS = ("annealed", "none", "always")
+MASK_ASSIGNMENTS = ("index", "matched")
 TOKEN_MASKS = ("touch", "objects")
 """How a label map becomes the mask prior's allowed slots per token (:func:`token_masks`)."""
 FEATURE_STRIDE = 4
@@ -54,7 +55,16 @@ class SlotConfig:
                                    "in it, the background's included) or objects (the objects with a pixel in it; "
                                    "the background slot only tokens no object touches)", choices=TOKEN_MASKS)
 
+    mask_assignment: str = doc("index", "which slot gets which segment under the masks: index (segment k to "
+                                        "slot k, the renderer's object order) or matched (each frame's "
+                                        "segments to the slots that attend to them most without masks, by "
+                                        "Hungarian matching: the masks group tokens but fix no slot order; "
+                                        "not in the chapter, whose SAM2 segments have no order)",
+                               choices=MASK_ASSIGNMENTS)
+
     def __post_init__(self) -> None:
+        if self.mask_assignment not in MASK_ASSIGNMENTS:
+            raise ValueError(f"mask_assignment must be one of {MASK_ASSIGNMENTS}, got {self.mask_assignment!r}")
         if min(self.num_slots, self.feature_dim, self.slot_dim, self.attention_dim, self.iterations,
                self.decoder_hidden, self.batch_size) < 1 or not self.lr > 0:
             raise ValueError("slot sizes, iterations, batch size and lr must be positive")
@@ -194,9 +204,23 @@ class SlotModel(nn.Module):
         with torch.no_grad():
             return self.autoencoder.encoder(images).flatten(2).transpose(1, 2)
 
-    def forward(self, frames: torch.Tensor, allowed: torch.Tensor | None = None) -> SlotOutput:
+    def _tokens(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         features = self.features(frames_to_tensor(frames))
-        tokens = self.token_mlp(features + self.position(self.grid_coords))
+        return features, self.token_mlp(features + self.position(self.grid_coords))
+
+    @torch.no_grad()
+    def match_segments(self, frames: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+        """``allowed`` [B, K, n] (row s: segment s's tokens) with its rows reordered per frame so that
+        each segment goes to the slot that, without masks, puts most of its attention on it (Hungarian
+        matching of slots to segments): the mask prior's grouping without a slot order of its own."""
+        from scipy.optimize import linear_sum_assignment
+        _, attention = self.slot_attention(self._tokens(frames)[1])  # [B, K, n], over slots
+        share = attention @ allowed.float().transpose(1, 2) / allowed.sum(-1).clamp_min(1)[:, None, :]  # [B, slot, segment]
+        order = torch.stack([torch.as_tensor(linear_sum_assignment(-m.numpy())[1]) for m in share.cpu()])
+        return allowed.gather(1, order.to(allowed.device)[:, :, None].expand_as(allowed))
+
+    def forward(self, frames: torch.Tensor, allowed: torch.Tensor | None = None) -> SlotOutput:
+        features, tokens = self._tokens(frames)
         slots, attention = self.slot_attention(tokens, allowed)
         features_hat, alpha = self.slot_decoder(slots)
         grid = features_hat.transpose(1, 2).reshape(len(frames), -1, self.grid, self.grid)
@@ -225,11 +249,15 @@ class SlotTrainer:
         self.generator = torch.Generator().manual_seed(seed)
         self.updates = 0
 
-    def masks_for(self, labels: torch.Tensor) -> torch.Tensor | None:
+    def masks_for(self, labels: torch.Tensor, frames: torch.Tensor | None = None) -> torch.Tensor | None:
         """This update's attention masks: each frame's own, or all-allowed where the prior is dropped."""
         if self.config.mask_prior == "none":
             return None
         allowed = token_masks(labels, self.config.num_slots, rule=self.config.token_mask)
+        if self.config.mask_assignment == "matched":
+            if frames is None:
+                raise ValueError("mask_assignment 'matched' needs the frames")
+            allowed = self.model.match_segments(frames, allowed)
         if self.config.mask_prior == "always":
             return allowed
         dropped = torch.rand(len(labels), generator=self.generator) < drop_probability(self.updates, self.total_updates)
@@ -238,7 +266,7 @@ class SlotTrainer:
     def update(self, frames: torch.Tensor, labels: torch.Tensor) -> dict[str, float]:
         """One Adam step on eq. 7.1 for a batch of frames ``[B, H, W, 3]`` and their label maps ``[B, H, W]``."""
         self.model.train()
-        loss, terms = self.model.loss(frames, self.model(frames, self.masks_for(labels)))
+        loss, terms = self.model.loss(frames, self.model(frames, self.masks_for(labels, frames)))
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.model.slot_parameters(), 1.0)

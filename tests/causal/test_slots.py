@@ -138,3 +138,31 @@ def test_seeded_training_repeats() -> None:
         trainer = SlotTrainer(SlotModel(SMALL, frame_size=16), total_updates=4, seed=1)
         runs.append([trainer.update(frames[:4], labels[:4])["loss"] for _ in range(3)])
     assert runs[0] == runs[1]
+
+
+def test_matched_masks_give_each_segment_to_the_slot_that_attends_to_it_most() -> None:
+    """``mask_assignment="matched"``: each frame's segments are a permutation of its rows, the one
+    that maximises the slots' unmasked attention on their segments (checked against every
+    permutation), so the prior groups tokens without fixing which slot takes which object."""
+    import itertools
+    torch.manual_seed(0)
+    model = SlotModel(dataclasses.replace(SMALL, mask_assignment="matched"), 16).eval()
+    frames, labels = _frames(3)
+    allowed = token_masks(labels, SMALL.num_slots)
+    matched = model.match_segments(frames, allowed)
+    with torch.no_grad():
+        attention = model.slot_attention(model._tokens(frames)[1])[1]
+    share = attention @ allowed.float().transpose(1, 2) / allowed.sum(-1).clamp_min(1)[:, None, :]
+    for b in range(len(frames)):
+        rows = [next(s for s in range(SMALL.num_slots) if torch.equal(matched[b, k], allowed[b, s]))
+                for k in range(SMALL.num_slots)]
+        assert sorted(rows) == list(range(SMALL.num_slots))  # a permutation of the segments
+        best = max(sum(float(share[b, k, p[k]]) for k in range(SMALL.num_slots))
+                   for p in itertools.permutations(range(SMALL.num_slots)))
+        assert sum(float(share[b, k, rows[k]]) for k in range(SMALL.num_slots)) == pytest.approx(best, rel=1e-6)
+    trainer = SlotTrainer(model, total_updates=100)
+    assert torch.equal(trainer.masks_for(labels, frames), matched)  # update 0: no mask dropped
+    with pytest.raises(ValueError, match="frames"):
+        trainer.masks_for(labels)
+    with pytest.raises(ValueError, match="mask_assignment"):
+        dataclasses.replace(SMALL, mask_assignment="sorted")
