@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from scipy.optimize import linear_sum_assignment
 from torch import nn
 
 from proto.settings import doc
@@ -54,7 +55,6 @@ class SlotConfig:
     token_mask: str = doc("touch", "which slots a token may take under the masks: touch (every segment with a pixel "
                                    "in it, the background's included) or objects (the objects with a pixel in it; "
                                    "the background slot only tokens no object touches)", choices=TOKEN_MASKS)
-
     mask_assignment: str = doc("index", "which slot gets which segment under the masks: index (segment k to "
                                         "slot k, the renderer's object order) or matched (each frame's "
                                         "segments to the slots that attend to them most without masks, by "
@@ -213,7 +213,6 @@ class SlotModel(nn.Module):
         """``allowed`` [B, K, n] (row s: segment s's tokens) with its rows reordered per frame so that
         each segment goes to the slot that, without masks, puts most of its attention on it (Hungarian
         matching of slots to segments): the mask prior's grouping without a slot order of its own."""
-        from scipy.optimize import linear_sum_assignment
         _, attention = self.slot_attention(self._tokens(frames)[1])  # [B, K, n], over slots
         share = attention @ allowed.float().transpose(1, 2) / allowed.sum(-1).clamp_min(1)[:, None, :]  # [B, slot, segment]
         order = torch.stack([torch.as_tensor(linear_sum_assignment(-m.numpy())[1]) for m in share.cpu()])
