@@ -194,10 +194,10 @@ class _Heads(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, w1: torch.Tensor, b1: torch.Tensor, w2: torch.Tensor, b2: torch.Tensor,
                 w3: torch.Tensor, b3: torch.Tensor, low: torch.dtype) -> torch.Tensor:
         xl, w1l, w2l, w3l = x.to(low), w1.to(low), w2.to(low), w3.to(low)
-        h1 = torch.bmm(xl, w1l).to(torch.float32).add_(b1).relu_().to(low)
-        h2 = torch.bmm(h1, w2l).to(torch.float32).add_(b2).relu_().to(low)
+        h1 = _affine(b1, xl, w1l, low).relu_().to(low)
+        h2 = _affine(b2, h1, w2l, low).relu_().to(low)
         ctx.save_for_backward(xl, h1, h2, w1l, w2l, w3l)
-        return torch.bmm(h2, w3l).to(torch.float32).add_(b3)
+        return _affine(b3, h2, w3l, low)
 
     @staticmethod
     @once_differentiable  # the saved layers have no graph: a second derivative would miss terms, so it raises
@@ -528,13 +528,12 @@ class CDLModel(nn.Module):
         rows' NLL in it."""
         j = self.num_outputs
         width = 0 if lead is None else lead.shape[1]
-        places = []
+        columns = []  # each group's rows after the lead and the groups before it, in order per output
         for out_j, _, _ in groups:
             counts = torch.bincount(out_j, minlength=j)
-            column = torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j]
-            places.append((out_j, column + width))
+            columns.append(width + torch.arange(len(out_j), device=out_j.device) - (torch.cumsum(counts, 0) - counts)[out_j])
             width += int(counts.max()) if len(out_j) else 0
-        places = [out_j * width + column for out_j, column in places]
+        places = [out_j * width + column for (out_j, _, _), column in zip(groups, columns)]
         like = lead if lead is not None else groups[0][2]
         feature = like.shape[-1]
         aggregated = like.new_zeros(j * width, feature)
