@@ -12,7 +12,8 @@ with the bias estimated per entry from the same input permuted across the held-o
 largest null (``pooled``, ``global``), Benjamini-Hochberg at ``--fdr`` on ``CMI >`` the level cut from
 the run's own CMI table (``bias="split"``: no number set by hand, no null), edges at ``CMI >=`` the
 level where the table's negative side says the non-edges above it are at most ``--fdr`` of the entries
-(``bias="mirror"``, no null either), and the oracle (the best-threshold F1, which needs the truth).
+(``bias="mirror"``, no null either), edges at or above the same two levels of ``CMI - null`` and of its
+z-score (``bias="mirror-permuted"``), and the oracle (the best-threshold F1, which needs the truth).
 Also how the recall of the weak true edges (model CMI < 0.02) grows with the held-out data the tests
 see, under each.
 
@@ -21,7 +22,7 @@ see, under each.
         [--train 100000] [--out benchmark-results/fdr]
 
 The table's last columns count the runs where the issue's goal held for the FDR graph at ``--min-cmi``,
-under ``split`` and under ``mirror``: F1 within ``GOAL_MARGIN`` of the oracle's and not below the fixed
+under ``split``, ``mirror`` and ``mirror-permuted``: F1 within ``GOAL_MARGIN`` of the oracle's and not below the fixed
 0.02 graph's.
 """
 from __future__ import annotations
@@ -36,7 +37,7 @@ import torch
 
 from causal.cdl import CDLConfig
 from causal.cdl_trainer import CDLTrainer
-from causal.edge_tests import EdgeEstimate, fdr_graph, mirror_level, split_level
+from causal.edge_tests import EdgeEstimate, fdr_graph, mirror_level, mirror_permuted_levels, split_level
 from causal.methods.cdl import permuted_terms
 from causal.factored import FactorLayout
 from causal.generalisation import random_transitions
@@ -116,6 +117,7 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
     split = fdr_graph(estimate, args.fdr, args.min_cmi, "split", cap=0.02)
     level = split_level(estimate, args.fdr, cap=0.02)
     mirror = fdr_graph(estimate, args.fdr, args.min_cmi, "mirror", cap=0.02)
+    mirror_permuted = fdr_graph(estimate, args.fdr, args.min_cmi, "mirror-permuted", cap=0.02)
     return {"graph": graph, "seed": seed, "updates": args.updates,
             "true_edges": int((truth & scored_entries(truth.shape)).sum()),
             "false_discoveries": false(tested), "false_discoveries_permuted": false(nulled),
@@ -125,6 +127,9 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
             "split_level": level, "largest_non_edge_cmi": float(estimate.cmi[non_edges].max()),
             "false_discoveries_mirror": false(mirror), "fdr_mirror": scores(mirror, truth),
             "mirror_level": mirror_level(estimate, args.fdr, cap=0.02),
+            "false_discoveries_mirror_permuted": false(mirror_permuted),
+            "fdr_mirror_permuted": scores(mirror_permuted, truth),
+            "mirror_permuted_levels": mirror_permuted_levels(estimate, args.fdr, cap=0.02),
             "estimate": {k: [[float(f"{v:.6g}") for v in row] for row in getattr(estimate, k)]
                          for k in ("cmi", "stderr", "null", "excess_stderr")},
             "truth": truth.astype(int).tolist(),
@@ -136,6 +141,7 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
             "weak_recall_by_heldout_global": recall_weak("global"),
             "weak_recall_by_heldout_split": recall_weak("split"),
             "weak_recall_by_heldout_mirror": recall_weak("mirror"),
+            "weak_recall_by_heldout_mirror_permuted": recall_weak("mirror-permuted"),
             "non_edge_cmi_mean": float(estimate.cmi[non_edges].mean()),
             "non_edge_null_mean": float(estimate.null[non_edges].mean()),
             "by_min_cmi": {str(m): scores(fdr_graph(estimate, args.fdr, m), truth) for m in MIN_CMI_SWEEP}}
@@ -143,15 +149,14 @@ def one(graph: str, objects: int, seed: int, args: argparse.Namespace) -> dict[s
 
 RULES = (("fixed", "fixed 0.02"), ("fdr_graph", "FDR, min_cmi"), ("fdr_permuted", "FDR, permuted null"),
          ("fdr_pooled", "FDR, pooled null"), ("fdr_global", "FDR, global null"), ("fdr_split", "FDR, split"),
-         ("fdr_mirror", "FDR, mirror"))
-SUFFIXES = ("", "_permuted", "_pooled", "_global", "_split", "_mirror")
+         ("fdr_mirror", "FDR, mirror"), ("fdr_mirror_permuted", "FDR, mirror-permuted"))
+SUFFIXES = ("", "_permuted", "_pooled", "_global", "_split", "_mirror", "_mirror_permuted")
 """The weak-recall keys of the rules but the fixed 0.02 graph, in ``RULES``' order."""
 
 
 def with_levels(row: dict[str, Any], fdr: float, min_cmi: float) -> dict[str, Any]:
-    """A row with the split and mirror rules' F1, FDR and levels recomputed from the estimate it
-    dumped: rows from before ``bias="split"`` or ``"mirror"`` existed, or from an earlier version of
-    them. Where a level differs from the one the run computed, that rule's weak recall by held-out
+    """A row with the split, mirror and mirror-permuted rules' F1, FDR and levels recomputed from the
+    estimate it dumped: rows from before those rules existed, or from an earlier version of them. Where a level differs from the one the run computed, that rule's weak recall by held-out
     data (which needs the per-sample ratios, not kept) is dropped."""
     if "estimate" not in row:
         return row
@@ -167,6 +172,14 @@ def with_levels(row: dict[str, Any], fdr: float, min_cmi: float) -> dict[str, An
         if before == "absent" or (before is None) != (level is None) or \
                 (level is not None and abs(before - level) > 1e-3 * level):
             out.pop(f"weak_recall_by_heldout_{bias}", None)
+    full = EdgeEstimate(est.cmi, est.stderr, 0, *(np.array(row["estimate"][k]) for k in ("null", "excess_stderr")))
+    levels = mirror_permuted_levels(full, fdr, cap=0.02)
+    out["fdr_mirror_permuted"] = scores(fdr_graph(full, fdr, min_cmi, "mirror-permuted", cap=0.02), truth)
+    before = row.get("mirror_permuted_levels", "absent")
+    out["mirror_permuted_levels"] = None if levels is None else list(levels)
+    if before == "absent" or (before is None) != (levels is None) or \
+            (levels is not None and not np.allclose(before, levels, rtol=1e-3)):
+        out.pop("weak_recall_by_heldout_mirror_permuted", None)
     return out
 
 
@@ -179,8 +192,8 @@ def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
              f"{' / '.join(f'{n // 1000}k' for n in HELDOUT_SIZES)} held-out ({' ; '.join(n.split(', ')[-1] for n in names[1:])}) |",
              "|---|---|---|" + "---|" * (len(RULES) + 3)]
     lines[0] += (f" goal met (FDR within {GOAL_MARGIN} of the oracle, not below fixed 0.02), min_cmi {min_cmi} |"
-                 " goal met, split | goal met, mirror |")
-    lines[1] += "---|---|---|"
+                 " goal met, split | goal met, mirror | goal met, mirror-permuted |")
+    lines[1] += "---|---|---|---|"
     budgets = {g: {r.get("updates") for r in rows if r["graph"] == g} for g in {r["graph"] for r in rows}}
     for graph, updates in dict.fromkeys((r["graph"], r.get("updates")) for r in rows):
         mine = [r for r in rows if (r["graph"], r.get("updates")) == (graph, updates)]
@@ -200,7 +213,8 @@ def table(rows: list[dict[str, Any]], fdr: float, min_cmi: float) -> str:
                      + " / ".join(ms([r[key]["fdr"] for r in mine]) for key, _ in RULES[1:]) + " | "
                      + " ; ".join(weak("weak_recall_by_heldout" + suffix) for suffix in SUFFIXES)
                      + f" | {sum(map(goal_met, mine))} of {len(mine)} | {sum(goal_met(r, 'fdr_split') for r in mine)} of {len(mine)}"
-                     + f" | {sum(goal_met(r, 'fdr_mirror') for r in mine)} of {len(mine)} |")
+                     + f" | {sum(goal_met(r, 'fdr_mirror') for r in mine)} of {len(mine)}"
+                     + f" | {sum(goal_met(r, 'fdr_mirror_permuted') for r in mine)} of {len(mine)} |")
     return "\n".join(lines)
 
 
@@ -217,9 +231,10 @@ def split_table(rows: list[dict[str, Any]]) -> str:
     (and the largest non-edge CMI, which they should clear), the F1 of the fixed 0.02 graph, of the
     FDR graph at ``--min-cmi``, at each level and at the best of ``LEVEL_GRID``, the oracle's, the FDR
     the split and mirror graphs reached, and whether each FDR graph met the issue's goal."""
-    lines = ["| graph | seed | updates | largest non-edge CMI | split level | mirror level | F1 fixed 0.02 | "
-             "F1 FDR, min_cmi | F1 FDR, split | F1 FDR, mirror | F1 FDR, best level (needs the truth) | F1 oracle | "
-             "FDR reached, split / mirror | goal met, min_cmi / split / mirror |", "|---" * 14 + "|"]
+    lines = ["| graph | seed | updates | largest non-edge CMI | split level | mirror level | mirror-permuted levels "
+             "(excess / z) | F1 fixed 0.02 | F1 FDR, min_cmi | F1 FDR, split | F1 FDR, mirror | F1 FDR, mirror-permuted | "
+             "F1 FDR, best level (needs the truth) | F1 oracle | FDR reached, split / mirror / mirror-permuted | "
+             "goal met, min_cmi / split / mirror / mirror-permuted |", "|---" * 16 + "|"]
 
     def level(value: float | None) -> str:
         return "none (min_cmi)" if value is None else f"{value:.2e}"
@@ -227,13 +242,18 @@ def split_table(rows: list[dict[str, Any]]) -> str:
     def met(r: dict[str, Any], rule: str) -> str:
         return "yes" if goal_met(r, rule) else "no"
 
+    def levels(value: list[float] | None) -> str:
+        return "none (min_cmi)" if value is None else f"{value[0]:.2e} / {value[1]:.2f}"
+
     for r in sorted(rows, key=lambda r: (r["graph"], r.get("updates") or 0, r["seed"])):
         lines.append(f"| {r['graph']} | {r['seed']} | {r.get('updates')} | {r['largest_non_edge_cmi']:.2e} | "
-                     f"{level(r.get('split_level'))} | {level(r.get('mirror_level'))} | {r['fixed']['f1']:.3f} | "
+                     f"{level(r.get('split_level'))} | {level(r.get('mirror_level'))} | "
+                     f"{levels(r.get('mirror_permuted_levels'))} | {r['fixed']['f1']:.3f} | "
                      f"{r['fdr_graph']['f1']:.3f} | {r['fdr_split']['f1']:.3f} | {r['fdr_mirror']['f1']:.3f} | "
-                     f"{r['best_level_f1']:.3f} | {r['oracle_f1']:.3f} | "
-                     f"{r['fdr_split']['fdr']:.3f} / {r['fdr_mirror']['fdr']:.3f} | {met(r, 'fdr_graph')} / "
-                     f"{met(r, 'fdr_split')} / {met(r, 'fdr_mirror')} |")
+                     f"{r['fdr_mirror_permuted']['f1']:.3f} | {r['best_level_f1']:.3f} | {r['oracle_f1']:.3f} | "
+                     f"{r['fdr_split']['fdr']:.3f} / {r['fdr_mirror']['fdr']:.3f} / {r['fdr_mirror_permuted']['fdr']:.3f} | "
+                     f"{met(r, 'fdr_graph')} / {met(r, 'fdr_split')} / {met(r, 'fdr_mirror')} / "
+                     f"{met(r, 'fdr_mirror_permuted')} |")
     return "\n".join(lines)
 
 
@@ -244,7 +264,7 @@ def requested_table(rows: list[dict[str, Any]], min_cmi: float) -> str:
     """The false-discovery proportion reached at several requested rates, per rule, averaged over the
     runs that dumped their estimate (its mean over runs is the false-discovery rate reached)."""
     rules = (("fixed", min_cmi), ("permuted", 0.0), ("pooled", 0.0), ("global", 0.0), ("split", min_cmi),
-             ("mirror", min_cmi))
+             ("mirror", min_cmi), ("mirror-permuted", min_cmi))
     dumped = [r for r in rows if "estimate" in r]
     lines = [f"| requested FDR | {' | '.join(f'{b} (min_cmi {m})' if b == 'fixed' else b for b, m in rules)} |",
              "|---|" + "---|" * len(rules)]

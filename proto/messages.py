@@ -25,14 +25,15 @@ SKILL_PHASES = ("pretrain", "task")
 """SkiLD's phases (ch. 6): reward-free skill pre-training, then task learning over the frozen skills."""
 EDGE_RULES = ("fixed", "fdr")
 """How a graph report decides its edges: CMI >= threshold, or tests at a false-discovery rate."""
-BIASES = ("fixed", "permuted", "pooled", "global", "split", "mirror")
+BIASES = ("fixed", "permuted", "pooled", "global", "split", "mirror", "mirror-permuted")
 """How the fdr rule allows for the learned model's bias: ``fixed`` tests ``CMI > min_cmi``;
 ``permuted`` tests ``CMI > null`` with the null estimated per entry from a permuted input; ``pooled``
 tests ``CMI >`` the largest null of the entry's output, ``global`` the largest of the whole graph;
 ``split`` tests ``CMI >`` a minimum effect size cut from the CMI table's two clusters; ``mirror``
 takes ``CMI >=`` the level where the entries below its negative count the non-edges above it at the
-rate (``causal.edge_tests``)."""
-NULL_BIASES = ("permuted", "pooled", "global")
+rate; ``mirror-permuted`` takes the same levels of ``CMI - null`` and of its z-score, and an entry
+above both (``causal.edge_tests``)."""
+NULL_BIASES = ("permuted", "pooled", "global", "mirror-permuted")
 """The biases that need the permuted-input null (``cmi_null``)."""
 
 
@@ -232,12 +233,14 @@ class GraphReport:
     at false-discovery rate ``fdr`` (Benjamini-Hochberg over the off-diagonal entries)"""
     fdr: float = 0.0
     min_cmi: float = 0.0
-    """The minimum effect size tested against: the configured one, or under ``bias`` split or mirror
-    the level cut from this report's CMI (the configured one where that rule found none)"""
+    """The minimum effect size tested against: the configured one, or under ``bias`` split, mirror or
+    mirror-permuted the level cut from this report's CMI (of ``cmi - cmi_null`` under mirror-permuted;
+    the configured one where that rule found none)"""
     bias: str = "fixed"
     """How the fdr rule allowed for the estimator's bias (:data:`BIASES`; schema version 8): ``fixed``,
     the test of ``cmi > min_cmi``; ``split``, the same with ``min_cmi`` estimated; ``mirror``, ``cmi >=``
-    the level ``min_cmi`` estimated from the table's negative side; otherwise of ``cmi`` above the
+    the level ``min_cmi`` estimated from the table's negative side; ``mirror-permuted``, ``cmi - cmi_null
+    >=`` its level ``min_cmi`` (and its z-score above its own level); otherwise of ``cmi`` above the
     permuted-input null"""
     cmi_null: np.ndarray | None = None
     """float32 [d_S, d_S + 1], nats: each entry's CMI with its input permuted across the held-out

@@ -29,7 +29,9 @@ class GraphEvaluatorConfig(ServiceConfig):
                              "min_cmi where it has none; needs no null) or mirror (edge if CMI >= the smallest level "
                              "where the entries below minus it, the non-edges' mirror image, are at most fdr of "
                              "those above it; for a model whose non-edges are as often below 0 as above; needs no "
-                             "null) (causal.edge_tests)", choices=BIASES)
+                             "null) or mirror-permuted (the same levels of CMI minus the permuted null and of its "
+                             "z-score; edge if above both; for models whose non-edges' CMI is biased either way) "
+                             "(causal.edge_tests)", choices=BIASES)
 
     heldout_capacity: int = doc(40_000, "held-out transitions kept (a ring buffer): each evaluation draws "
                                 "eval_samples of them, so successive estimates see different episodes")

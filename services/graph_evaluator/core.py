@@ -266,10 +266,11 @@ class GraphEvaluatorCore:
         return decide(estimate, cfg.edge_rule, self.threshold, cfg.fdr, cfg.min_cmi, bias=cfg.bias)
 
     def tested_level(self, cmi: np.ndarray, stderr: np.ndarray) -> float:
-        """The minimum effect size the fdr rule tested against: ``min_cmi``, or under ``bias`` split or
-        mirror the level cut from this estimate (``causal.edge_tests.effect_level``)."""
+        """The minimum effect size the fdr rule tested against: ``min_cmi``, or under ``bias`` split,
+        mirror or mirror-permuted the level cut from this estimate (``causal.edge_tests.effect_level``)."""
         cfg = self.cfg
-        return effect_level(EdgeEstimate(cmi, stderr, 0), cfg.fdr, cfg.min_cmi, cfg.bias, cap=self.threshold)
+        estimate = EdgeEstimate(cmi, stderr, 0, self.null_ema, self.excess_stderr_ema)
+        return effect_level(estimate, cfg.fdr, cfg.min_cmi, cfg.bias, cap=self.threshold)
 
     def decide_reward(self, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The reward's parents ``[d_S + 1]`` under the configured rule (fdr: at the same level and

@@ -4,8 +4,8 @@ catch-up), a time budget.
 A target score needs the true graph; a stable graph does not: with ``--stable-reports`` and/or
 ``--stable-seconds`` the run stops once that many graph reports in a row (that long) carry the same
 graph and the newest has no undecided entry (every entry's confidence interval on one side of the
-edge rule's boundary, :func:`causal.edge_tests.decide`). Under ``--evaluator-bias mirror`` the
-boundary is a level placed inside the non-edges' tail, where some non-edge's interval always reaches
+edge rule's boundary, :func:`causal.edge_tests.decide`). Under ``--evaluator-bias mirror`` (and
+``mirror-permuted``) the boundary is a level placed inside the non-edges' tail, where some non-edge's interval always reaches
 it, and the rate, not each entry's interval, bounds the errors there: so its dynamics entries left
 undecided do not hold a stable graph back once the evaluator's draw is at its largest (more data
 cannot come; a CBM reward entry, tested against ``min_cmi``, still does).
@@ -82,7 +82,7 @@ class StableGraph:
         """Whether the newest report's undecided entries are all dynamics entries at a mirror level
         estimated on the evaluator's largest draw (the module's docstring)."""
         reward_open = report.reward_undecided is not None and bool(report.reward_undecided.any())
-        return (report.edge_rule == "fdr" and report.bias == "mirror" and not reward_open
+        return (report.edge_rule == "fdr" and report.bias in ("mirror", "mirror-permuted") and not reward_open
                 and self.largest_draw > 0 and report.num_heldout >= self.largest_draw)
 
 

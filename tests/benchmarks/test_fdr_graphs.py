@@ -12,7 +12,7 @@ from benchmarks import fdr_graphs
 
 
 def run_row(graph: str, seed: int, fixed: float, tested: float, oracle: float, updates: int = 2_000,
-            split: float = 0.5, mirror: float = 0.5) -> dict:
+            split: float = 0.5, mirror: float = 0.5, mirror_permuted: float = 0.5) -> dict:
     """A run's row as the benchmark writes it, with only the keys the tables read."""
     def f1(value: float) -> dict:
         return {"f1": value, "fdr": 0.0}
@@ -20,8 +20,9 @@ def run_row(graph: str, seed: int, fixed: float, tested: float, oracle: float, u
     recall = {str(n): 0.5 for n in fdr_graphs.HELDOUT_SIZES}
     return {"graph": graph, "seed": seed, "updates": updates, "true_edges": 9, "weak_true_edges": 1,
             "fixed": f1(fixed), "fdr_graph": f1(tested), "fdr_permuted": f1(0.5), "fdr_pooled": f1(0.5),
-            "fdr_global": f1(0.5), "fdr_split": f1(split), "fdr_mirror": f1(mirror), "oracle_f1": oracle,
-            "split_level": 2e-3, "mirror_level": None,
+            "fdr_global": f1(0.5), "fdr_split": f1(split), "fdr_mirror": f1(mirror),
+            "fdr_mirror_permuted": f1(mirror_permuted), "oracle_f1": oracle,
+            "split_level": 2e-3, "mirror_level": None, "mirror_permuted_levels": [1e-3, 2.5],
             "largest_non_edge_cmi": 1e-3, "best_level_f1": oracle,
             **{f"weak_recall_by_heldout{s}": recall for s in fdr_graphs.SUFFIXES}}
 
@@ -53,17 +54,19 @@ def test_a_run_given_twice_counts_once_and_logs_read_like_json(tmp_path: Path) -
 
 def test_the_table_gives_mean_and_sd_over_seeds_and_counts_the_runs_meeting_the_goal() -> None:
     rows = [run_row("full", 0, 0.900, 1.000, 1.000, split=1.0), run_row("full", 1, 0.900, 0.900, 1.000, split=1.0),
-            run_row("full", 2, 0.952, 1.000, 1.000, split=0.9, mirror=1.0), run_row("chain", 0, 1.0, 1.0, 1.0)]
+            run_row("full", 2, 0.952, 1.000, 1.000, split=0.9, mirror=1.0, mirror_permuted=1.0),
+            run_row("chain", 0, 1.0, 1.0, 1.0, mirror_permuted=1.0)]
     lines = fdr_graphs.table(rows, 0.05, 5e-3).splitlines()
     assert "goal met" in lines[0] and lines[0].count("|") == lines[1].count("|") == lines[2].count("|")
     full = lines[2].split(" | ")
     assert full[0] == "| full" and full[1] == "3"
     assert full[4] == f"{np.mean([1.0, 0.9, 1.0]):.3f} ± {np.std([1.0, 0.9, 1.0], ddof=1):.3f}"
-    assert lines[2].endswith("| 2 of 3 | 2 of 3 | 1 of 3 |") and lines[3].endswith("| 1 of 1 | 0 of 1 | 0 of 1 |")
+    assert lines[2].endswith("| 2 of 3 | 2 of 3 | 1 of 3 | 1 of 3 |")
+    assert lines[3].endswith("| 1 of 1 | 0 of 1 | 0 of 1 | 1 of 1 |")
     per_run = fdr_graphs.split_table(rows).splitlines()
-    assert per_run[0].count("|") == per_run[1].count("|") == per_run[2].count("|") == 15
-    assert per_run[2].startswith("| chain | 0 |") and per_run[2].endswith("| yes / no / no |")
-    assert "| 2.00e-03 | none (min_cmi) |" in per_run[2]
+    assert per_run[0].count("|") == per_run[1].count("|") == per_run[2].count("|") == 17
+    assert per_run[2].startswith("| chain | 0 |") and per_run[2].endswith("| yes / no / no / yes |")
+    assert "| 2.00e-03 | none (min_cmi) | 1.00e-03 / 2.50 |" in per_run[2]
 
 
 @pytest.mark.timeout(180)
@@ -82,15 +85,20 @@ def test_a_tiny_run_writes_rows_whose_graphs_agree_with_each_other(tmp_path: Pat
     assert all(0.0 <= r <= 1.0 for r in recall)
     assert row["split_level"] is None or 0.0 < row["split_level"] <= 0.02
     assert row["mirror_level"] is None or 0.0 < row["mirror_level"] <= 0.02
+    assert row["mirror_permuted_levels"] is None or (0.0 < row["mirror_permuted_levels"][0] <= 0.02
+                                                     and row["mirror_permuted_levels"][1] > 0.0)
     assert row["largest_non_edge_cmi"] == pytest.approx(float(est["cmi"][~truth & ~np.eye(9, 10, dtype=bool)].max()), rel=1e-5)
     old = {k: v for k, v in row.items()
-           if k not in ("fdr_split", "split_level", "fdr_mirror", "mirror_level", "largest_non_edge_cmi")}
+           if k not in ("fdr_split", "split_level", "fdr_mirror", "mirror_level", "fdr_mirror_permuted",
+                        "mirror_permuted_levels", "largest_non_edge_cmi")}
     again = fdr_graphs.with_levels(old, 0.05, 5e-3)    # a row from before the split and mirror rules, filled from its estimate
     assert set(again["fdr_split"]) == set(row["fdr_split"]) and 0.0 <= again["fdr_split"]["f1"] <= 1.0
     assert again["fdr_mirror"]["f1"] == pytest.approx(row["fdr_mirror"]["f1"])   # the dump keeps 6 digits
     assert (again["mirror_level"] is None) == (row["mirror_level"] is None)
     assert again["mirror_level"] is None or again["mirror_level"] == pytest.approx(row["mirror_level"], rel=1e-5)
     assert "weak_recall_by_heldout_mirror" not in again and "weak_recall_by_heldout_mirror" in row
+    assert again["fdr_mirror_permuted"]["f1"] == pytest.approx(row["fdr_mirror_permuted"]["f1"])
+    assert (again["mirror_permuted_levels"] is None) == (row["mirror_permuted_levels"] is None)
     assert again["best_level_f1"] >= max(v["f1"] for k, v in row["by_min_cmi"].items() if float(k) >= 1e-4) - 1e-9
     assert "| chain | 1 |" in capsys.readouterr().out
 

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from causal.edge_tests import (EdgeEstimate, benjamini_hochberg, decide, effect_level, fdr_graph, mirror_level, p_values,
+from causal.edge_tests import (EdgeEstimate, benjamini_hochberg, decide, effect_level, fdr_graph, mirror_level,
+                                mirror_permuted_levels, p_values,
                                 split_level, undecided)
 
 
@@ -335,3 +336,67 @@ def test_the_mirror_marks_undecided_by_its_level() -> None:
     edges, undecided = decide(EdgeEstimate(cmi, stderr, 10_000), "fdr", 0.02, 0.05, 5e-3, bias="mirror")
     assert not edges[j, i] and undecided[j, i]
     assert level < 1e-3 and edges[0:2, 2:12].all() and edges.sum() == (cmi[off] >= level).sum()
+
+
+def _biased_table(rng: np.random.Generator, scale: float = 1e-4) -> tuple[EdgeEstimate, np.ndarray]:
+    """A table like a long-trained model's on a small graph: 25 edges (five weak, CMI 8e-4 to 2e-3,
+    the rest strong), non-edges whose CMI is symmetric about 0 (Student t, 3 degrees of freedom) but
+    for 30 the model leans on, whose CMI sits at 5e-4 to 3e-3, and a permuted null that takes off what
+    the model's use of an input costs whatever value it reads: each non-edge's excess ``CMI - null``
+    symmetric about 0 (its standard error ``scale``), an edge's its CMI plus the permutation's cost."""
+    shape = (30, 31)
+    off = ~np.eye(*shape, dtype=bool)
+    rows, cols = np.nonzero(off)
+    pick = rng.choice(rows.size, 55, replace=False)
+    truth = np.zeros(shape, dtype=bool)
+    truth[rows[pick[:25]], cols[pick[:25]]] = True
+    cmi = np.where(off, scale * rng.standard_t(3, shape), 0.0)
+    cmi[rows[pick[:25]], cols[pick[:25]]] = np.concatenate([np.linspace(8e-4, 2e-3, 5), rng.uniform(0.02, 1.0, 20)])
+    cmi[rows[pick[25:]], cols[pick[25:]]] = rng.uniform(5e-4, 3e-3, 30)   # non-edges the model leans on
+    excess = np.where(off, scale * rng.standard_t(3, shape), 0.0)
+    excess[truth] = 2.0 * cmi[truth]
+    stderr = np.full(shape, scale)
+    return EdgeEstimate(cmi, stderr, 10_000, cmi - excess, stderr), truth
+
+
+def test_mirror_permuted_holds_its_rate_where_the_non_edges_cmi_is_biased_above_zero() -> None:
+    """Where some non-edges' CMI is biased above 0 (the model leans on them) the table's negative side
+    no longer mirrors them: ``mirror`` lets them in, far past the rate requested. Their excess over the
+    permuted null is symmetric again, so ``mirror-permuted`` reaches at most the rate requested (within
+    the spread of 100 tables) and still finds most weak edges."""
+    rng = np.random.default_rng(31)
+    for fdr in (0.05, 0.2):
+        mirror, permuted, weak_found = [], [], []
+        for _ in range(100):
+            est, truth = _biased_table(rng)
+            for rates, bias in ((mirror, "mirror"), (permuted, "mirror-permuted")):
+                edges = fdr_graph(est, fdr, 5e-3, bias, cap=0.02)
+                rates.append((edges & ~truth).sum() / max(edges.sum(), 1))
+            weak = truth & (est.cmi < 5e-3)
+            weak_found.append((fdr_graph(est, fdr, 5e-3, "mirror-permuted", cap=0.02) & weak).sum() / weak.sum())
+        assert np.mean(mirror) > 2 * fdr
+        assert np.mean(permuted) < fdr + 2 * np.std(permuted) / np.sqrt(len(permuted))
+        assert np.mean(weak_found) > 0.5
+
+
+def test_mirror_permuted_takes_the_entries_above_both_levels_and_falls_back_without_a_negative_side() -> None:
+    """The two levels are :func:`mirror_level`'s of the excess (capped) and of its z-score (not), the
+    edges the entries at or above both, the report's level the excess's; no null or no negative side:
+    the test of ``CMI > min_cmi``; undecided, the non-edges whose interval of the excess reaches it."""
+    est, truth = _biased_table(np.random.default_rng(32))
+    excess, stderr = est.cmi - est.null, est.excess_stderr
+    level, z_level = mirror_permuted_levels(est, 0.05, cap=0.02)
+    assert level == mirror_level(EdgeEstimate(excess, stderr, 0), 0.05, 0.02)
+    assert z_level == mirror_level(EdgeEstimate(excess / stderr, np.ones_like(stderr), 0), 0.05)
+    off = ~np.eye(*truth.shape, dtype=bool)
+    edges = fdr_graph(est, 0.05, 5e-3, "mirror-permuted", cap=0.02)
+    assert np.array_equal(edges, (excess >= level) & (excess / stderr >= z_level) & off)
+    assert effect_level(est, 0.05, 5e-3, "mirror-permuted", cap=0.02) == level
+    assert mirror_permuted_levels(EdgeEstimate(est.cmi, est.stderr, 0), 0.05) is None   # no null
+    cap = mirror_permuted_levels(est, 0.05, cap=0.1 * level)
+    assert cap[0] == pytest.approx(0.1 * level) and cap[1] == z_level
+    one_sided = EdgeEstimate(est.cmi, est.stderr, 0, est.cmi - np.abs(excess), stderr)
+    assert mirror_permuted_levels(one_sided, 0.05) is None
+    assert np.array_equal(fdr_graph(one_sided, 0.05, 5e-3, "mirror-permuted"), fdr_graph(one_sided, 0.05, 5e-3))
+    edges, undecided = decide(est, "fdr", 0.02, 0.05, 5e-3, bias="mirror-permuted")
+    assert np.array_equal(undecided, ~edges & (excess + 1.96 * stderr >= level) & off)

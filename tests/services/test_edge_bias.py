@@ -36,7 +36,7 @@ def filled_core(cfg: GraphEvaluatorConfig, n: int = 96) -> GraphEvaluatorCore:
     return core
 
 
-@pytest.mark.parametrize("bias", ["permuted", "pooled"])
+@pytest.mark.parametrize("bias", ["permuted", "pooled", "mirror-permuted"])
 def test_the_fdr_rule_against_the_permuted_null_reaches_the_report(bias: str, tmp_path) -> None:
     cfg = GraphEvaluatorConfig(edge_rule="fdr", bias=bias, min_heldout=64, seed=3)
     core = filled_core(cfg)
@@ -54,6 +54,9 @@ def test_the_fdr_rule_against_the_permuted_null_reaches_the_report(bias: str, tm
     np.testing.assert_allclose(report.cmi_null, estimate.null, rtol=1e-4, atol=1e-6)
     assert np.array_equal(report.adjacency.astype(bool) & off, edges)
     assert np.array_equal(report.undecided.astype(bool), undecided)
+    if bias == "mirror-permuted":   # the report's min_cmi is the level its excess was cut at
+        level = effect_level(estimate, cfg.fdr, cfg.min_cmi, bias, cap=report.threshold)
+        assert report.min_cmi == pytest.approx(level, rel=1e-4)
     fields = graph_fields(report)
     assert fields["bias"] == bias and np.shape(fields["cmi_null"]) == edges.shape
     core.checkpoint(tmp_path / "ev.pt")
@@ -122,7 +125,7 @@ def test_a_run_asking_for_a_null_its_method_lacks_is_refused_before_it_starts() 
     from services.runtime.config import build_config
     from services.supervisor.wiring import resolve
 
-    for bias in ("permuted", "pooled", "global"):
+    for bias in ("permuted", "pooled", "global", "mirror-permuted"):
         with pytest.raises(ValueError, match=f"--evaluator-bias {bias}: CBM's implicit dynamics have no permuted-input null"):
             resolve(build_config(RunConfig, method="cbm", env="chemical-distractors", evaluator_bias=bias))
         with pytest.raises(ValueError, match="'modular' has no standard errors"):

@@ -79,6 +79,9 @@ def test_under_mirror_entries_undecided_at_the_level_stop_only_with_the_largest_
     assert rule.reason(tested(1, draw=8_000), 1.0) == "" and rule.reason(tested(2, draw=8_000), 2.0) == ""
     reason = rule.reason(tested(3), 3.0)
     assert "2 entries undecided at the mirror level with the largest draw (16000" in reason
+    permuted = StableGraph(reports=2, seconds=0.0, largest_draw=16_000)   # the same under mirror-permuted
+    assert permuted.reason(tested(1, bias="mirror-permuted"), 1.0) == ""
+    assert "undecided at the mirror level" in permuted.reason(tested(2, bias="mirror-permuted"), 2.0)
     for other in ("fixed", "split"):
         held = StableGraph(reports=2, seconds=0.0, largest_draw=16_000)
         assert all(held.reason(tested(v, bias=other), float(v)) == "" for v in (1, 2, 3))
