@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -115,29 +116,34 @@ def collect(env: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np
 
 
 def _uniform_updates(trainer: ELDENTrainer | CDLTrainer, tensors: tuple[torch.Tensor, ...], rng: np.random.Generator,
-                     steps: int, batch: int, every: int = 0, hook=None) -> dict[str, float]:
+                     steps: int, batch: int, every: int = 0, hook=None, label: str = "") -> dict[str, float]:
     """``steps`` updates of ``trainer``, each on ``batch`` rows drawn uniformly by ``rng``; ``hook()``
-    after every ``every``-th update (0: never). The stats of the last update."""
+    after every ``every``-th update (0: never). The stats of the last update. With ``label``, progress
+    on stderr every tenth of the updates (a 3,000-update variant takes minutes to an hour here)."""
     stats: dict[str, float] = {}
+    started, tenth = time.perf_counter(), max(steps // 10, 1)
     for step in range(1, steps + 1):
         rows = torch.from_numpy(rng.integers(0, len(tensors[0]), batch))
         stats = trainer.update(*(t[rows] for t in tensors))
         if every and step % every == 0:
             hook()
+        if label and (step % tenth == 0 or step == steps):
+            print(f"{label}: update {step:,} of {steps:,} ({time.perf_counter() - started:.0f}s)", file=sys.stderr, flush=True)
     return stats
 
 
 def train(layout: FactorLayout, cfg: ELDENConfig, data: tuple[np.ndarray, ...], updates: int,
-          seed: int, mask: MaskConfig | None = None) -> tuple[ELDENTrainer, dict[str, float]]:
+          seed: int, mask: MaskConfig | None = None, label: str = "") -> tuple[ELDENTrainer, dict[str, float]]:
     """``updates`` steps of an ELDENTrainer (a MaskTrainer with ``mask``), each on ``members x
-    member_batch`` rows drawn uniformly."""
+    member_batch`` rows drawn uniformly (``label``: progress on stderr)."""
     trainer = ELDENTrainer(layout, cfg, seed=seed) if mask is None else MaskTrainer(layout, cfg, mask, seed=seed)
     tensors = tuple(torch.from_numpy(x) for x in data)
-    return trainer, _uniform_updates(trainer, tensors, np.random.default_rng(seed + 1), updates, trainer.batch_size)
+    return trainer, _uniform_updates(trainer, tensors, np.random.default_rng(seed + 1), updates, trainer.batch_size,
+                                     label=label)
 
 
 def train_pcmi(layout: FactorLayout, data: tuple[np.ndarray, ...], updates: int,
-               seed: int) -> tuple[CDLTrainer, dict[str, float]]:
+               seed: int, label: str = "") -> tuple[CDLTrainer, dict[str, float]]:
     """CDL on the same transitions, drawing as many as ``updates`` ELDEN updates draw (rows uniformly,
     as :func:`train`); the causal term's parents from the CMI of 2,000 rows drawn afresh every 1,000
     updates, as the evaluator would hand them over."""
@@ -152,14 +158,16 @@ def train_pcmi(layout: FactorLayout, data: tuple[np.ndarray, ...], updates: int,
         trainer.set_parents(trainer.model.cmi(*(t[sample] for t in tensors)).numpy() >= cfg.cmi_threshold)
 
     steps = -(-updates * elden.members * elden.member_batch // cfg.batch_size)
-    return trainer, _uniform_updates(trainer, tensors, rng, steps, cfg.batch_size, every=1000, hook=new_parents)
+    return trainer, _uniform_updates(trainer, tensors, rng, steps, cfg.batch_size, every=1000, hook=new_parents,
+                                     label=label)
 
 
 def run_variant(env: str, seed: int, variant: str, data: tuple, layout: FactorLayout, scripted: tuple,
                 updates: int) -> tuple[dict[str, Any], ELDENTrainer | CDLTrainer]:
+    label = f"{env} seed {seed} {variant}"
     if variant == PCMI:
         started = time.process_time()
-        cdl, stats = train_pcmi(layout, data, updates, seed)
+        cdl, stats = train_pcmi(layout, data, updates, seed, label)
         return {"env": env, "seed": seed, "variant": variant, "config": {"cdl": dataclasses.asdict(cdl.cfg)},
                 "updates": updates, "cdl_updates": cdl.updates, "transitions": int(len(data[0])),
                 "final_stats": stats, "train_cpu_s": time.process_time() - started,
@@ -167,7 +175,7 @@ def run_variant(env: str, seed: int, variant: str, data: tuple, layout: FactorLa
     cfg = dataclasses.replace(ELDENConfig(), **VARIANTS[variant])
     mask = MASK_VARIANTS.get(variant)
     started = time.process_time()
-    trainer, stats = train(layout, cfg, data, updates, seed, mask)
+    trainer, stats = train(layout, cfg, data, updates, seed, mask, label)
     trained = time.process_time() - started
     scored = (score_estimators("elden", trainer.model, scripted) if mask is None
               else score_with({variant: MASK_ESTIMATORS[variant]}, trainer.model, scripted))
@@ -218,6 +226,7 @@ def main(argv: list[str] | None = None) -> None:
     for env in args.envs:
         scripted = scripted_transitions(env, task_kwargs(env), args.episodes)
         for seed in args.seeds:
+            print(f"{env} seed {seed}: collecting {args.transitions:,} transitions", file=sys.stderr, flush=True)
             *data, layout = collect(env, args.transitions, seed)
             for variant in args.variants:
                 result, trainer = run_variant(env, seed, variant, tuple(data), layout, scripted, args.updates)

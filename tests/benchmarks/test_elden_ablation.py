@@ -66,7 +66,10 @@ def test_main_scores_each_variant_and_a_rerun_replaces_its_entry(tmp_path, capsy
     for r in results:
         assert set(r["estimators"]) == {"jacobian", "attention"}
         assert 0.0 <= r["estimators"]["jacobian"]["roc_auc"] <= 1.0
-    assert "| no Reg, i.e. lambda = 0 | thawing | 1 |" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert "| no Reg, i.e. lambda = 0 | thawing | 1 |" in printed.out
+    assert "thawing seed 0: collecting 200 transitions" in printed.err       # progress, on stderr
+    assert "thawing seed 0 lambda-0: update 1 of 1 (" in printed.err
 
 
 def test_a_mask_baseline_trains_its_own_model_and_is_scored_by_its_mask(tmp_path, capsys) -> None:
