@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -107,7 +108,8 @@ def _fit(x: np.ndarray, y: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarr
 
 def collect_episodes(env_name: str, env_kwargs: dict[str, Any], steps: int, seed: int
                      ) -> tuple[tuple[str, ...], dict[str, np.ndarray]]:
-    """``steps`` transitions of the collection policy Table 4.1's benchmark uses, with ``first``."""
+    """``steps`` transitions of the collection policy Table 4.1's benchmark uses, with ``first``; a
+    discrete action is recorded one-hot."""
     from benchmarks.cbm_graph_table import CollectionPolicy
     from envs.registry import make_env
 
@@ -118,10 +120,12 @@ def collect_episodes(env_name: str, env_kwargs: dict[str, Any], steps: int, seed
     rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "first")}
     first = True
     started = time.monotonic()
+    choices = env.action_space.n if isinstance(env.action_space, gym.spaces.Discrete) else 0
     for step in range(steps):
         action = policy.act(obs)
         nxt, _, terminated, truncated, _ = env.step(action)
-        for key, value in zip(rows, (obs, np.atleast_1d(action), nxt, first)):
+        recorded = np.eye(choices)[int(action)] if choices else np.atleast_1d(action)  # one-hot: a choice is no scale
+        for key, value in zip(rows, (obs, recorded, nxt, first)):
             rows[key].append(value)
         obs, first = nxt, False
         if terminated or truncated:
@@ -162,7 +166,7 @@ def plot(names: tuple[str, ...], result: dict[str, Any], path: Path, title: str)
     ax.set_ylabel("held-out R^2 of the change")
     ax.set_ylim(min(0.0, *(result["r2"][i] for i in shown)) if shown else 0.0, 1.0)
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
