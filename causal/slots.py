@@ -209,17 +209,22 @@ class SlotModel(nn.Module):
         return features, self.token_mlp(features + self.position(self.grid_coords))
 
     @torch.no_grad()
-    def match_segments(self, frames: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+    def match_segments(self, frames: torch.Tensor, allowed: torch.Tensor,
+                       tokens: torch.Tensor | None = None) -> torch.Tensor:
         """``allowed`` [B, K, n] (row s: segment s's tokens) with its rows reordered per frame so that
         each segment goes to the slot that, without masks, puts most of its attention on it (Hungarian
-        matching of slots to segments): the mask prior's grouping without a slot order of its own."""
-        _, attention = self.slot_attention(self._tokens(frames)[1])  # [B, K, n], over slots
+        matching of slots to segments): the mask prior's grouping without a slot order of its own.
+        ``tokens``: the frames' tokens where the caller has them (the trainer's update), else computed."""
+        tokens = self._tokens(frames)[1] if tokens is None else tokens.detach()
+        _, attention = self.slot_attention(tokens)  # [B, K, n], over slots
         share = attention @ allowed.float().transpose(1, 2) / allowed.sum(-1).clamp_min(1)[:, None, :]  # [B, slot, segment]
         order = torch.stack([torch.as_tensor(linear_sum_assignment(-m.numpy())[1]) for m in share.cpu()])
         return allowed.gather(1, order.to(allowed.device)[:, :, None].expand_as(allowed))
 
-    def forward(self, frames: torch.Tensor, allowed: torch.Tensor | None = None) -> SlotOutput:
-        features, tokens = self._tokens(frames)
+    def forward(self, frames: torch.Tensor, allowed: torch.Tensor | None = None,
+                encoded: tuple[torch.Tensor, torch.Tensor] | None = None) -> SlotOutput:
+        """eq. 7.1's pass; ``encoded`` = ``(features, tokens)`` of ``frames`` where already computed."""
+        features, tokens = self._tokens(frames) if encoded is None else encoded
         slots, attention = self.slot_attention(tokens, allowed)
         features_hat, alpha = self.slot_decoder(slots)
         grid = features_hat.transpose(1, 2).reshape(len(frames), -1, self.grid, self.grid)
@@ -248,15 +253,17 @@ class SlotTrainer:
         self.generator = torch.Generator().manual_seed(seed)
         self.updates = 0
 
-    def masks_for(self, labels: torch.Tensor, frames: torch.Tensor | None = None) -> torch.Tensor | None:
-        """This update's attention masks: each frame's own, or all-allowed where the prior is dropped."""
+    def masks_for(self, labels: torch.Tensor, frames: torch.Tensor | None = None,
+                  tokens: torch.Tensor | None = None) -> torch.Tensor | None:
+        """This update's attention masks: each frame's own, or all-allowed where the prior is dropped
+        (``frames``, and their ``tokens`` if computed, for ``mask_assignment="matched"``)."""
         if self.config.mask_prior == "none":
             return None
         allowed = token_masks(labels, self.config.num_slots, rule=self.config.token_mask)
         if self.config.mask_assignment == "matched":
             if frames is None:
                 raise ValueError("mask_assignment 'matched' needs the frames")
-            allowed = self.model.match_segments(frames, allowed)
+            allowed = self.model.match_segments(frames, allowed, tokens)
         if self.config.mask_prior == "always":
             return allowed
         dropped = torch.rand(len(labels), generator=self.generator) < drop_probability(self.updates, self.total_updates)
@@ -265,7 +272,9 @@ class SlotTrainer:
     def update(self, frames: torch.Tensor, labels: torch.Tensor) -> dict[str, float]:
         """One Adam step on eq. 7.1 for a batch of frames ``[B, H, W, 3]`` and their label maps ``[B, H, W]``."""
         self.model.train()
-        loss, terms = self.model.loss(frames, self.model(frames, self.masks_for(labels, frames)))
+        encoded = self.model._tokens(frames)  # once: the matching (if any) and the pass share it
+        allowed = self.masks_for(labels, frames, encoded[1])
+        loss, terms = self.model.loss(frames, self.model(frames, allowed, encoded))
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.model.slot_parameters(), 1.0)

@@ -166,3 +166,26 @@ def test_matched_masks_give_each_segment_to_the_slot_that_attends_to_it_most() -
         trainer.masks_for(labels)
     with pytest.raises(ValueError, match="mask_assignment"):
         dataclasses.replace(SMALL, mask_assignment="sorted")
+
+
+def test_a_matched_update_encodes_the_frames_once_with_the_same_result() -> None:
+    """The trainer's update shares the frames' tokens between the matching and the pass: the same
+    loss as matching and passing separately, and one encoder call instead of two."""
+    frames, labels = _frames(4)
+    config = dataclasses.replace(SMALL, mask_assignment="matched")
+    losses, calls = [], []
+    for shared in (False, True):
+        torch.manual_seed(2)
+        model = SlotModel(config, 16)
+        trainer = SlotTrainer(model, total_updates=10, seed=3)
+        encoder_calls = []
+        model.autoencoder.encoder.register_forward_hook(lambda *_: encoder_calls.append(1))
+        if shared:
+            losses.append(trainer.update(frames, labels)["loss"])
+        else:  # the path before: match on its own encoding, then pass on another
+            model.train()
+            loss, _ = model.loss(frames, model(frames, trainer.masks_for(labels, frames)))
+            losses.append(float(loss.detach()))
+        calls.append(len(encoder_calls))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-6)
+    assert calls == [2, 1]
