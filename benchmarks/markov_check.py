@@ -19,6 +19,7 @@ and with the previous action); prints a table.
 
     python -m benchmarks.markov_check --env block --steps 6000
     python -m benchmarks.markov_check --env block --steps 6000 --control-freq 5 --out benchmark-results/markov-block-5hz
+    python -m benchmarks.markov_check --env manipulation --steps 6000 --out benchmark-results/markov-manipulation
 """
 from __future__ import annotations
 
@@ -174,7 +175,8 @@ def plot(names: tuple[str, ...], result: dict[str, Any], path: Path, title: str)
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--env", default="block", choices=("block", "tool-use", "chemical-distractors"))
+    p.add_argument("--env", default="block", choices=("block", "tool-use", "manipulation", "chemical-distractors"),
+                   help="manipulation: chapter 3's scene (uniformly random actions; it has no distractors)")
     p.add_argument("--steps", type=int, default=6000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--control-freq", type=int, default=0, help="policy steps per second (0: the env's 10)")
@@ -184,11 +186,12 @@ def main(argv: list[str] | None = None) -> None:
     if args.steps < 50:
         p.error("--steps must be at least 50")
     if args.control_freq and args.env == "chemical-distractors":
-        p.error("--control-freq applies to the robosuite scenes (block, tool-use) only")
+        p.error("--control-freq applies to the robosuite scenes (block, tool-use, manipulation) only")
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
-    env_kwargs: dict[str, Any] = {"distractors": "0,0"}
-    env_kwargs |= {"task": {"block": "pick", "tool-use": "series"}.get(args.env, "match")}
+    env_kwargs: dict[str, Any] = {}
+    if args.env != "manipulation":
+        env_kwargs = {"distractors": "0,0", "task": {"block": "pick", "tool-use": "series"}.get(args.env, "match")}
     if args.control_freq:
         env_kwargs["control_freq"] = args.control_freq
     names, data = collect_episodes(args.env, env_kwargs, args.steps, args.seed)
