@@ -60,14 +60,19 @@ from envs.registry import make_env
 from proto.messages import EnvSpec
 
 
+BLOCK_CUBES = ("mov1", "mov2", "mov3")
+
+
 class CollectionPolicy:
     """Uniformly random actions; on ``block``, every other episode opens with a scripted grasp of
-    ``mov1``, on ``tool-use`` with the scripted Series solution (:class:`envs.tool_use.SeriesScript`)
-    cut off after a uniformly random 10-160 steps (random actions would rarely touch a cube, and never
-    use the tool)."""
+    ``mov1`` (or, with ``grasp_targets``, of one of those cubes drawn uniformly per episode), on
+    ``tool-use`` with the scripted Series solution (:class:`envs.tool_use.SeriesScript`) cut off after a
+    uniformly random 10-160 steps (random actions would rarely touch a cube, and never use the tool)."""
 
-    def __init__(self, env: Any, env_name: str, seed: int) -> None:
-        self.env, self.env_name = env, env_name
+    def __init__(self, env: Any, env_name: str, seed: int, grasp_targets: tuple[str, ...] = ("mov1",)) -> None:
+        if not grasp_targets or not set(grasp_targets) <= set(BLOCK_CUBES):
+            raise ValueError(f"grasp_targets must be some of {BLOCK_CUBES}, got {grasp_targets!r}")
+        self.env, self.env_name, self.grasp_targets = env, env_name, tuple(grasp_targets)
         self.rng, self.skill, self.episode, self.budget = np.random.default_rng(seed), None, 0, 0
 
     def start_episode(self) -> None:
@@ -78,8 +83,9 @@ class CollectionPolicy:
         scripted = self.episode % 2 == 0
         self.episode += 1
         self.skill = None
-        if scripted and self.env_name == "block":
-            self.skill = grasp("mov1", layout=BLOCK)
+        if scripted and self.env_name == "block":  # one target draws nothing: the default's stream stays as it was
+            target = self.grasp_targets[0] if len(self.grasp_targets) == 1 else str(self.rng.choice(self.grasp_targets))
+            self.skill = grasp(target, layout=BLOCK)
         elif scripted and self.env_name == "tool-use":  # the budget is drawn only here: other envs' draws stay as they were
             self.skill, self.budget = SeriesScript(), int(self.rng.integers(10, 161))
 
@@ -97,11 +103,11 @@ class CollectionPolicy:
         return self.rng.uniform(space.low, space.high).astype(np.float32)
 
 
-def collect(env_kwargs: dict[str, Any], steps: int, seed: int, env_name: str = "chemical-distractors"
-            ) -> tuple[EnvSpec, dict[str, np.ndarray]]:
+def collect(env_kwargs: dict[str, Any], steps: int, seed: int, env_name: str = "chemical-distractors",
+            grasp_targets: tuple[str, ...] = ("mov1",)) -> tuple[EnvSpec, dict[str, np.ndarray]]:
     """``steps`` collection-policy transitions of ``env_name``; ``heldout`` marks every tenth episode."""
     env = make_env(env_name, **env_kwargs).unwrapped
-    policy = CollectionPolicy(env, env_name, seed)
+    policy = CollectionPolicy(env, env_name, seed, grasp_targets)
     obs, _ = env.reset(seed=seed)
     policy.start_episode()
     rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "reward", "heldout")}
@@ -378,6 +384,9 @@ def main(argv: list[str] | None = None) -> None:
                                                     "(object 0 only); block: pick or stack; tool-use: series; dmc-walker: walk, stand or run; dmc-cheetah: run")
     p.add_argument("--episode-length", type=int, default=0, help="steps per episode (0: the env's default)")
     p.add_argument("--steps", type=int, default=20_000, help="random-policy transitions per seed")
+    p.add_argument("--grasp", choices=("mov1", "all"), default="mov1",
+                   help="block: the scripted grasp that opens every other episode takes mov1, or one of "
+                        "mov1-mov3 drawn per episode (all), so that every movable cube is touched")
     p.add_argument("--updates", type=int, default=5_000)
     p.add_argument("--estimate-every", type=int, default=500,
                    help="updates between CMI estimates (averaged, and the causal term's parents)")
@@ -401,6 +410,9 @@ def main(argv: list[str] | None = None) -> None:
         (args.out / "cbm_table.json").write_text(json.dumps(merged, indent=1))
         print(table(merged["rows"]))
         return
+    if args.grasp != "mov1" and args.env != "block":
+        p.error("--grasp applies to --env block only")
+    grasp_targets = BLOCK_CUBES if args.grasp == "all" else ("mov1",)
     env_kwargs: dict[str, Any] = dict(distractors=args.distractors, task=args.task)
     if args.env == "chemical-distractors":
         env_kwargs |= dict(graph=args.graph, num_objects=args.num_objects)
@@ -410,7 +422,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.reward_only:
         cfg = CBMConfig(lr=args.lr)
         for seed in args.seeds:
-            spec, data = collect(env_kwargs, args.steps, seed, args.env)
+            spec, data = collect(env_kwargs, args.steps, seed, args.env, grasp_targets)
             trained_reward = train_reward(spec, cfg, data, args.updates, args.estimate_every, args.ema, seed)
             rows.append({"seed": seed, "seconds_per_update": trained_reward.seconds_per_update,
                          **evaluate_reward(trained_reward, spec, data, cfg.reward_threshold)})
@@ -422,7 +434,7 @@ def main(argv: list[str] | None = None) -> None:
         print(reward_table(rows))
         return
     for seed in args.seeds:
-        spec, data = collect(env_kwargs, args.steps, seed, args.env)
+        spec, data = collect(env_kwargs, args.steps, seed, args.env, grasp_targets)
         results = {}
         for variant in args.variants:
             cfg = CBMConfig(dynamics=variant, lr=args.lr)

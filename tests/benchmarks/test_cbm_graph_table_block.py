@@ -18,6 +18,37 @@ def test_block_collection_opens_with_a_grasp_of_mov1() -> None:
     assert data["reward"][:40].max() == 1.0
 
 
+def test_block_grasps_can_take_every_movable_cube(monkeypatch) -> None:
+    """``--grasp all``: each scripted opening grasps one of mov1-mov3, drawn per episode; the default
+    grasps mov1 and draws nothing (its random stream is the one the tables were measured with)."""
+    import pytest
+
+    import envs.skills
+    from benchmarks.cbm_graph_table import BLOCK_CUBES, CollectionPolicy
+
+    grasped: list[str] = []
+    real = envs.skills.grasp
+    monkeypatch.setattr(envs.skills, "grasp", lambda obj, **kw: grasped.append(obj) or real(obj, **kw))
+    default = CollectionPolicy(None, "block", seed=3)
+    before = default.rng.bit_generator.state
+    for _ in range(4):
+        default.start_episode()
+    assert default.rng.bit_generator.state == before and grasped == ["mov1", "mov1"]
+    grasped.clear()
+    every = CollectionPolicy(None, "block", seed=3, grasp_targets=BLOCK_CUBES)
+    for _ in range(40):
+        every.start_episode()
+    assert len(grasped) == 20 and set(grasped) == set(BLOCK_CUBES)  # every other episode, each cube
+    with pytest.raises(ValueError, match="grasp_targets"):
+        CollectionPolicy(None, "block", seed=0, grasp_targets=("unm",))
+
+
+def test_block_collection_can_grasp_mov2() -> None:
+    spec, data = collect(dict(distractors="0,0", task="pick", episode_length=40), 40, 1, "block", ("mov2",))
+    mov2_z = spec.factor_names.index("mov2.z")
+    assert data["next_state"][:, mov2_z].max() > TABLE_TOP[2] + MOV_HALF + 0.02  # the opening grasp lifted mov2
+
+
 def test_tool_use_collection_opens_with_the_scripted_series() -> None:
     from envs.manipulation_layout import TOOL_USE
     from envs.tool_use import IN_REACH_X
