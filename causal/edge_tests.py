@@ -318,14 +318,19 @@ def mirror_level(estimate: EdgeEstimate, fdr: float, cap: float = math.inf) -> f
     return float(min(t[ok[0]], cap))
 
 
+def _excess_and_z(estimate: EdgeEstimate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``CMI - null``, its standard error and its z-score (0 where the standard error is 0)."""
+    excess, stderr = estimate.excess("mirror-permuted")
+    return excess, stderr, np.where(stderr > 0, excess / np.where(stderr > 0, stderr, 1.0), 0.0)
+
+
 def mirror_permuted_levels(estimate: EdgeEstimate, fdr: float, cap: float = math.inf) -> tuple[float, float] | None:
     """``bias="mirror-permuted"``'s two levels (module docstring): :func:`mirror_level` of the
     permuted-input excess ``CMI - null`` (at most ``cap``) and of its z-score ``(CMI - null) / se``
     (uncapped); None where either finds none (or the estimate has no null)."""
     if estimate.null is None or estimate.excess_stderr is None:
         return None
-    excess, stderr = estimate.excess("mirror-permuted")
-    z = np.where(stderr > 0, excess / np.where(stderr > 0, stderr, 1.0), 0.0)
+    excess, stderr, z = _excess_and_z(estimate)
     level = mirror_level(EdgeEstimate(excess, stderr, estimate.samples), fdr, cap)
     z_level = mirror_level(EdgeEstimate(z, np.ones_like(z), estimate.samples), fdr)
     return None if level is None or z_level is None else (level, z_level)
@@ -381,8 +386,7 @@ def fdr_graph(estimate: EdgeEstimate, fdr: float, min_cmi: float, bias: str = "f
         levels = mirror_permuted_levels(estimate, fdr, cap)
         if levels is None:   # too few negative entries to mirror: the test of CMI > min_cmi, as under mirror
             return fdr_graph(estimate, fdr, min_cmi, "fixed")
-        excess, stderr = estimate.excess(bias)
-        z = np.where(stderr > 0, excess / np.where(stderr > 0, stderr, 1.0), 0.0)
+        excess, _, z = _excess_and_z(estimate)
         out[tested] = (excess[tested] >= levels[0]) & (z[tested] >= levels[1])
         return out
     level = effect_level(estimate, fdr, min_cmi, bias, cap)
