@@ -105,25 +105,26 @@ class CollectionPolicy:
 
 def collect(env_kwargs: dict[str, Any], steps: int, seed: int, env_name: str = "chemical-distractors",
             grasp_targets: tuple[str, ...] = ("mov1",)) -> tuple[EnvSpec, dict[str, np.ndarray]]:
-    """``steps`` collection-policy transitions of ``env_name``; ``heldout`` marks every tenth episode."""
+    """``steps`` collection-policy transitions of ``env_name``; ``heldout`` marks every tenth episode,
+    ``first`` each episode's first step."""
     env = make_env(env_name, **env_kwargs).unwrapped
     policy = CollectionPolicy(env, env_name, seed, grasp_targets)
     obs, _ = env.reset(seed=seed)
     policy.start_episode()
-    rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "reward", "heldout")}
-    episode = 0
+    rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "reward", "heldout", "first")}
+    episode, first = 0, True
     for _ in range(steps):
         action = policy.act(obs)
         nxt, reward, terminated, truncated, _ = env.step(action)
-        for key, value in zip(rows, (obs, np.atleast_1d(action), nxt, reward, episode % 10 == 9)):
+        for key, value in zip(rows, (obs, np.atleast_1d(action), nxt, reward, episode % 10 == 9, first)):
             rows[key].append(value)
-        obs = nxt
+        obs, first = nxt, False
         if terminated or truncated:
-            obs, episode = env.reset()[0], episode + 1
+            obs, episode, first = env.reset()[0], episode + 1, True
             policy.start_episode()
     spec = env.env_spec()
     env.close()
-    return spec, {k: np.asarray(v, dtype=bool if k == "heldout" else np.float32) for k, v in rows.items()}
+    return spec, {k: np.asarray(v, dtype=bool if k in ("heldout", "first") else np.float32) for k, v in rows.items()}
 
 
 def tensors(data: dict[str, np.ndarray], rows: np.ndarray) -> tuple[torch.Tensor, ...]:

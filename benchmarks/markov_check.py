@@ -26,11 +26,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 
@@ -109,34 +107,15 @@ def _fit(x: np.ndarray, y: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarr
 
 def collect_episodes(env_name: str, env_kwargs: dict[str, Any], steps: int, seed: int
                      ) -> tuple[tuple[str, ...], dict[str, np.ndarray]]:
-    """``steps`` transitions of the collection policy Table 4.1's benchmark uses, with ``first``; a
-    discrete action is recorded one-hot."""
-    from benchmarks.cbm_graph_table import CollectionPolicy
-    from envs.registry import make_env
+    """``steps`` transitions of the collection policy Table 4.1's benchmark uses
+    (:func:`benchmarks.cbm_graph_table.collect`, with ``first``); a categorical action one-hot."""
+    from benchmarks.cbm_graph_table import collect
 
-    env = make_env(env_name, **env_kwargs).unwrapped
-    policy = CollectionPolicy(env, env_name, seed)
-    obs, _ = env.reset(seed=seed)
-    policy.start_episode()
-    rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "first")}
-    first = True
-    started = time.monotonic()
-    choices = env.action_space.n if isinstance(env.action_space, gym.spaces.Discrete) else 0
-    for step in range(steps):
-        action = policy.act(obs)
-        nxt, _, terminated, truncated, _ = env.step(action)
-        recorded = np.eye(choices)[int(action)] if choices else np.atleast_1d(action)  # one-hot: a choice is no scale
-        for key, value in zip(rows, (obs, recorded, nxt, first)):
-            rows[key].append(value)
-        obs, first = nxt, False
-        if terminated or truncated:
-            obs, first = env.reset()[0], True
-            policy.start_episode()
-        if (step + 1) % max(1, steps // 10) == 0:
-            print(f"collected {step + 1}/{steps} steps ({time.monotonic() - started:.0f} s)", file=sys.stderr, flush=True)
-    names = tuple(env.env_spec().factor_names)
-    env.close()
-    return names, {k: np.asarray(v, dtype=bool if k == "first" else np.float64) for k, v in rows.items()}
+    print(f"collecting {steps} steps of {env_name}", file=sys.stderr, flush=True)
+    spec, data = collect(env_kwargs, steps, seed, env_name)
+    if spec.action_kind == "categorical":  # a choice is no scale
+        data["action"] = np.eye(spec.action_size)[data["action"][:, 0].astype(int)]
+    return tuple(spec.factor_names), data
 
 
 def table(names: tuple[str, ...], result: dict[str, Any]) -> str:
