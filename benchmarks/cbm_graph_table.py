@@ -388,6 +388,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--grasp", choices=("mov1", "all"), default="mov1",
                    help="block: the scripted grasp that opens every other episode takes mov1, or one of "
                         "mov1-mov3 drawn per episode (all), so that every movable cube is touched")
+    p.add_argument("--velocities", action="store_true",
+                   help="block, tool-use: velocity factors for the arm, fingers and movable bodies (a Markov state; "
+                        "not the chapter's)")
     p.add_argument("--updates", type=int, default=5_000)
     p.add_argument("--estimate-every", type=int, default=500,
                    help="updates between CMI estimates (averaged, and the causal term's parents)")
@@ -413,12 +416,16 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.grasp != "mov1" and args.env != "block":
         p.error("--grasp applies to --env block only")
+    if args.velocities and args.env not in ("block", "tool-use"):
+        p.error("--velocities applies to --env block and tool-use only")
     grasp_targets = BLOCK_CUBES if args.grasp == "all" else ("mov1",)
     env_kwargs: dict[str, Any] = dict(distractors=args.distractors, task=args.task)
     if args.env == "chemical-distractors":
         env_kwargs |= dict(graph=args.graph, num_objects=args.num_objects)
     if args.episode_length:
         env_kwargs["episode_length"] = args.episode_length
+    if args.velocities:
+        env_kwargs["velocities"] = True
     rows: list[dict[str, Any]] = []
     if args.reward_only:
         cfg = CBMConfig(lr=args.lr)

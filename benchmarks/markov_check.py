@@ -20,6 +20,7 @@ and with the previous action); prints a table.
     python -m benchmarks.markov_check --env block --steps 6000
     python -m benchmarks.markov_check --env block --steps 6000 --control-freq 5 --out benchmark-results/markov-block-5hz
     python -m benchmarks.markov_check --env manipulation --steps 6000 --out benchmark-results/markov-manipulation
+    python -m benchmarks.markov_check --env block --steps 6000 --velocities --out benchmark-results/markov-block-vel
 """
 from __future__ import annotations
 
@@ -160,12 +161,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--control-freq", type=int, default=0, help="policy steps per second (0: the env's 10)")
     p.add_argument("--updates", type=int, default=4000, help="Adam updates per fit")
+    p.add_argument("--velocities", action="store_true",
+                   help="the robosuite scenes with velocity factors (eef, fingers, movable bodies)")
     p.add_argument("--out", type=Path, default=Path("benchmark-results/markov"))
     args = p.parse_args(argv)
     if args.steps < 50:
         p.error("--steps must be at least 50")
     if args.control_freq and args.env == "chemical-distractors":
         p.error("--control-freq applies to the robosuite scenes (block, tool-use, manipulation) only")
+    if args.velocities and args.env == "chemical-distractors":
+        p.error("--velocities applies to the robosuite scenes (block, tool-use, manipulation) only")
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     env_kwargs: dict[str, Any] = {}
@@ -173,10 +178,13 @@ def main(argv: list[str] | None = None) -> None:
         env_kwargs = {"distractors": "0,0", "task": {"block": "pick", "tool-use": "series"}.get(args.env, "match")}
     if args.control_freq:
         env_kwargs["control_freq"] = args.control_freq
+    if args.velocities:
+        env_kwargs["velocities"] = True
     names, data = collect_episodes(args.env, env_kwargs, args.steps, args.seed)
     result = predictability(data["state"], data["action"], data["next_state"], data["first"],
                             updates=args.updates, seed=args.seed)
-    title = f"{args.env}, {args.steps} steps, seed {args.seed}" + (f", {args.control_freq} Hz" if args.control_freq else "")
+    title = (f"{args.env}, {args.steps} steps, seed {args.seed}" + (f", {args.control_freq} Hz" if args.control_freq else "")
+             + (", velocity factors" if args.velocities else ""))
     (args.out / "markov.json").write_text(json.dumps({"args": vars(args) | {"out": str(args.out)},
                                                        "factor_names": names, **result}, indent=1))
     plot(names, result, args.out / "markov.png", title)

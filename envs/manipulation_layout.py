@@ -5,7 +5,7 @@ scripted skills (:mod:`envs.skills`) can be used without loading robosuite.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -69,6 +69,16 @@ class SceneLayout:
     shapes: tuple[tuple[str, str], ...] = ()
     """``(body, shape)`` for bodies that are not plain cubes: ``"l-tool"`` (:data:`TOOL_HANDLE_HALF`,
     :data:`TOOL_HOOK_HALF`) or ``"open-box"`` (:data:`BOX_INNER_HALF`, :data:`BOX_WALL`)."""
+    velocities: tuple[str, ...] = ()
+    """Bodies whose velocities are factors too (:meth:`with_velocities`: the arm's end-effector, the
+    fingers and every movable body), after all the positions: ``eef.vx/vy/vz`` (m/s), ``grp.v0/v1``,
+    ``<cube>.vx/vy/vz`` and, for an oriented body, ``.vyaw`` (rad/s). Without them the robosuite scenes
+    are not Markov in their factors (docs/environments.md, "Velocity factors"); positions keep their
+    indices either way."""
+
+    def with_velocities(self) -> "SceneLayout":
+        """This layout with velocity factors for ``eef``, ``grp`` and every movable body."""
+        return replace(self, velocities=("eef", "grp") + self.movable)
 
     def shape(self, obj: str) -> str:
         """``"cube"``, ``"l-tool"`` or ``"open-box"``."""
@@ -84,26 +94,42 @@ class SceneLayout:
         return self.kinematic + self.markers
 
     def dims(self, obj: str) -> tuple[str, ...]:
+        """The position dimensions of ``obj`` (coordinates, the tool's yaw, the fingers' joints)."""
         if obj == "grp":
             return OBJECT_DIMS["grp"]
         return ("x", "y", "z", "yaw") if obj in self.oriented else ("x", "y", "z")
 
+    def velocity_dims(self, obj: str) -> tuple[str, ...]:
+        """The velocity dimensions of ``obj`` (none unless it is in :attr:`velocities`)."""
+        if obj not in self.velocities:
+            return ()
+        return tuple(f"v{d}" for d in self.dims(obj))
+
+    @property
+    def _factors(self) -> tuple[tuple[str, str], ...]:
+        positions = tuple((o, d) for o in self.objects for d in self.dims(o))
+        return positions + tuple((o, d) for o in self.objects for d in self.velocity_dims(o))
+
     @property
     def factor_names(self) -> tuple[str, ...]:
-        return tuple(f"{o}.{d}" for o in self.objects for d in self.dims(o))
+        return tuple(f"{o}.{d}" for o, d in self._factors)
 
     @property
     def factor_objects(self) -> tuple[str, ...]:
-        return tuple(o for o in self.objects for _ in self.dims(o))
+        return tuple(o for o, _ in self._factors)
 
     @property
     def num_factors(self) -> int:
-        return len(self.factor_objects)
+        return len(self._factors)
 
     def factor_slice(self, obj: str) -> slice:
-        """The factor (observation) indices of object ``obj``."""
+        """The factor (observation) indices of object ``obj``'s position dimensions (:meth:`dims`)."""
         start = self.factor_objects.index(obj)
         return slice(start, start + len(self.dims(obj)))
+
+    def factor_indices(self, obj: str) -> np.ndarray:
+        """All of ``obj``'s factor indices: its positions, then its velocities (if any)."""
+        return np.array([k for k, o in enumerate(self.factor_objects) if o == obj], dtype=np.int64)
 
     @property
     def contact_groups(self) -> tuple[str, ...]:

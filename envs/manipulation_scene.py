@@ -27,6 +27,7 @@ import xml.etree.ElementTree as ET
 from collections import OrderedDict
 from typing import Any
 
+import mujoco
 import numpy as np
 from robosuite.controllers import load_composite_controller_config
 from robosuite.environments.manipulation.manipulation_env import ManipulationEnv as RobosuiteManipulationEnv
@@ -175,6 +176,29 @@ class CausalTableScene(RobosuiteManipulationEnv):
     def gripper_qpos(self) -> np.ndarray:
         return self.sim.data.qpos[self.gripper_qpos_addr].copy()
 
+    def eef_vel(self) -> np.ndarray:
+        """World-frame linear velocity (m/s) of the end-effector site: its Jacobian times ``qvel``."""
+        m, d = self.sim.model._model, self._data
+        jacp = np.zeros((3, m.nv))
+        mujoco.mj_jacSite(m, d, jacp, None, self.robots[0].eef_site_id["right"])
+        return jacp @ d.qvel
+
+    def gripper_qvel(self) -> np.ndarray:
+        """Velocities (m/s) of the two finger slide joints."""
+        return self.sim.data.qvel[self.gripper_qvel_addr].copy()
+
+    def mov_vel(self, k: int = 0) -> np.ndarray:
+        """World-frame linear velocity (m/s) of movable body ``k`` (its free joint's first three)."""
+        v = self.mov_qvel_addr[k]
+        return self.sim.data.qvel[v:v + 3].copy()
+
+    def mov_yaw_rate(self, k: int = 0) -> float:
+        """Angular velocity (rad/s) of movable body ``k`` about the world's vertical (a free joint's
+        angular velocity is in the body's frame: rotated to the world's by the body's quaternion)."""
+        v, world = self.mov_qvel_addr[k], np.zeros(3)
+        mujoco.mju_rotVecQuat(world, self.sim.data.qvel[v + 3:v + 6], self.mov_quat(k))
+        return float(world[2])
+
     def mov_pos(self, k: int = 0) -> np.ndarray:
         """Position of movable cube ``k`` (``mov`` in chapter 3's scene)."""
         a = self.mov_qpos_addr[k]
@@ -216,6 +240,7 @@ class CausalTableScene(RobosuiteManipulationEnv):
         prefix = self.robots[0].gripper["right"].naming_prefix
         joints = [m.joint(prefix + j).id for j in GRIPPER_JOINTS]
         self.gripper_qpos_addr = m.jnt_qposadr[joints]
+        self.gripper_qvel_addr = m.jnt_dofadr[joints]
         joints = [m.joint(cube.joints[0]).id for cube in self.movables]
         self.mov_qpos_addr = [int(m.jnt_qposadr[j]) for j in joints]
         self.mov_qvel_addr = [int(m.jnt_dofadr[j]) for j in joints]

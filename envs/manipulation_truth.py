@@ -43,6 +43,13 @@ the identifiable scores leave out the columns of
 Resulting classes (:func:`causal.abstraction.cdl_abstraction`): controllable ``eef``, ``grp``,
 ``mov``; action-relevant ``unm``, ``rand``; action-irrelevant ``mk1``-``mk3``.
 
+**Velocity factors** (``velocities=True``: :meth:`envs.manipulation_layout.SceneLayout.with_velocities`)
+belong to their body: ``eef.vx/vy/vz`` to ``eef``, ``grp.v0/v1`` to ``grp``, a cube's velocities to
+the cube. Every rule above then applies to a body's positions and velocities together (the rows
+and columns of a body are all its factors): a body's next position and velocity depend on its
+current ones, contact couples the velocities as it couples the positions, and the action drives
+the robot's (and a held cube's) velocities.
+
 **Several movable cubes** (chapter 4's block scene, :data:`envs.manipulation_layout.BLOCK`): force
 travels through every chain of touching movable bodies, so the rule above applies to each connected
 group of the robot and the movable cubes in contact during the step: every member depends on every
@@ -61,15 +68,15 @@ ACTION = NUM_FACTORS
 
 def _rows(layout: SceneLayout, body: str) -> np.ndarray:
     objects = ("eef", "grp") if body == "robot" else (body,)
-    return np.concatenate([np.arange(layout.num_factors)[layout.factor_slice(o)] for o in objects])
+    return np.concatenate([layout.factor_indices(o) for o in objects])
 
 
 def _no_contact_graph(layout: SceneLayout) -> np.ndarray:
     n = layout.num_factors
     graph = np.eye(n, n + 1, dtype=np.uint8)
     for obj in ("eef", "grp", *layout.movable):
-        block = layout.factor_slice(obj)
-        graph[block, block] = 1
+        block = layout.factor_indices(obj)
+        graph[np.ix_(block, block)] = 1
     graph[_rows(layout, "robot"), n] = 1
     return graph
 

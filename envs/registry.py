@@ -32,8 +32,8 @@ def task_names() -> tuple[str, ...]:
 class EnvOptions:
     """Environment construction options a run can set; each environment takes the ones it lists.
 
-    For ``task``, ``episode_length`` and ``room_size`` the empty value (``""``, 0) means the
-    environment's own default and is not passed."""
+    For ``task``, ``episode_length``, ``room_size`` and ``velocities`` the empty value (``""``, 0,
+    False) means the environment's own default and is not passed."""
 
     task: str = doc("", "task the environment poses ('' none: reward-free); a task may name another env "
                         "(Chemical's match: chemical-match); see each env's tasks in docs/environments.md",
@@ -45,6 +45,9 @@ class EnvOptions:
     room_size: int = doc(0, "household tasks and 2D Minecraft: side of the room in cells (0: the env's default)")
     distractors: str = doc("20,20", "chapter 4's distractor factors, 'controllable,uncontrollable': random "
                                     "projections of the action and U(-1, 1) noise (chemical-distractors, block, tool-use, dmc-*)")
+    velocities: bool = doc(False, "robosuite scenes (manipulation, block, tool-use): velocity factors for the arm, "
+                                  "fingers and movable bodies, which make the state Markov (not the chapters' state; "
+                                  "docs/environments.md)")
 
     def __post_init__(self) -> None:
         if self.episode_length < 0 or self.room_size < 0:
@@ -52,7 +55,7 @@ class EnvOptions:
         parse_distractors(self.distractors)
 
 
-DEFAULTED = ("task", "episode_length", "room_size")
+DEFAULTED = ("task", "episode_length", "room_size", "velocities")
 """Options whose empty value means "the environment's default" (not passed to the constructor)."""
 
 
@@ -175,18 +178,18 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
              options=_CHEMICAL, truth="global+local", check=_check_chemical),
     EnvEntry("manipulation", "causeway/Manipulation-v0", "envs.manipulation:ManipulationEnv",
              "robosuite manipulation scene (ch. 3.3.1): UR5e, movable/fixed/random-walk cubes, markers",
-             options=("episode_length",), truth="global+local",
+             options=("episode_length", "velocities"), truth="global+local",
              constant_factors=manipulation_layout.CONSTANT_FACTORS,
              skills="envs.skills:SkillPolicy", skill_collection=True, local_scoring=True),
     EnvEntry("block", "causeway/Block-v0", "envs.block:BlockEnv",
              "chapter 4's block scene (CBM): UR5e, movable mov1-mov3, fixed unm, 20+20 distractors; Pick, Stack",
-             options=("episode_length", "distractors"), truth="global+local",
+             options=("episode_length", "distractors", "velocities"), truth="global+local",
              constant_factors=manipulation_layout.BLOCK.constant_factors,
              tasks=dict.fromkeys(("pick", "stack"), "block"), task_kwarg="task", local_scoring=True),
     EnvEntry("tool-use", "causeway/ToolUse-v0", "envs.tool_use:ToolUseEnv",
              "chapter 4's tool-use scene (CBM): UR5e, an L-shaped tool, a block out of reach, a fixed open box, "
              "20+20 distractors; Series",
-             options=("episode_length", "distractors"), truth="global+local",
+             options=("episode_length", "distractors", "velocities"), truth="global+local",
              constant_factors=manipulation_layout.TOOL_USE.constant_factors,
              tasks={"series": "tool-use"}, task_kwarg="task", local_scoring=True),
     EnvEntry("dmc-walker", "causeway/DMCWalker-v0", "envs.dmc:WalkerEnv",

@@ -150,3 +150,26 @@ def test_bad_task_is_refused_with_the_valid_values() -> None:
         resolve(build_config(RunConfig, router_port=7447, env="tool-use", task="pick"))
     cfg = resolve(build_config(RunConfig, router_port=7447, env="tool-use", task="series", distractors="3,4"))
     assert env_entry(cfg.env).kwargs(cfg.env_options) == {"distractors": "3,4", "task": "series"}
+
+
+def test_velocity_factors_include_the_tools_yaw_rate_in_the_worlds_frame() -> None:
+    """``velocities=True``: 12 velocity factors after the 15 positions, the tool's ``vyaw`` last of its
+    four; a free joint's angular velocity is in the body's frame, so a tool on its side turning
+    about its own y axis turns about the world's vertical."""
+    env = ToolUseEnv(velocities=True, distractors="0,0")
+    try:
+        obs, _ = env.reset(seed=2)
+        names = env.factor_names
+        assert len(names) == SCENE + 12 and names[SCENE + 5:SCENE + 9] == ("tool.vx", "tool.vy", "tool.vz", "tool.vyaw")
+        np.testing.assert_allclose(obs[SCENE:], 0.0, atol=1e-3)
+        scene, v = env.scene, env.scene.mov_qvel_addr[0]
+        scene.sim.data.qvel[v + 3:v + 6] = [0.0, 0.0, 2.0]
+        assert scene.mov_yaw_rate(0) == pytest.approx(2.0)  # lying flat: the body's z is the world's
+        on_side = np.array([np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0])  # 90 degrees about x
+        scene.set_mov_pose(scene.mov_pos(0), on_side, 0)
+        scene.sim.data.qvel[v + 3:v + 6] = [0.0, 2.0, 0.0]
+        assert scene.mov_yaw_rate(0) == pytest.approx(2.0)
+        scene.sim.data.qvel[v:v + 3] = [0.1, -0.2, 0.3]
+        np.testing.assert_allclose(env._observation()[SCENE + 5:SCENE + 9], [0.1, -0.2, 0.3, 2.0], rtol=1e-6)
+    finally:
+        env.close()
