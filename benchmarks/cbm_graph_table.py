@@ -39,6 +39,7 @@ dynamics graph, and, from the same trained model, the parents the per-mask-varia
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 import time
 from dataclasses import dataclass
@@ -113,7 +114,9 @@ def collect(env_kwargs: dict[str, Any], steps: int, seed: int, env_name: str = "
     policy.start_episode()
     rows: dict[str, list] = {k: [] for k in ("state", "action", "next_state", "reward", "heldout", "first")}
     episode, first = 0, True
-    for _ in range(steps):
+    for step in range(1, steps + 1):
+        if step % 2000 == 0:
+            print(f"  collected {step}/{steps} steps of {env_name}", file=sys.stderr, flush=True)
         action = policy.act(obs)
         nxt, reward, terminated, truncated, _ = env.step(action)
         for key, value in zip(rows, (obs, np.atleast_1d(action), nxt, reward, episode % 10 == 9, first)):
@@ -163,6 +166,8 @@ def train(spec: EnvSpec, cfg: CBMConfig, data: dict[str, np.ndarray], updates: i
             cmi = new if cmi is None else weight * cmi + (1 - weight) * new
             reward_cmi = new_reward if reward_cmi is None else weight * reward_cmi + (1 - weight) * new_reward
             trainer.set_parents(cmi >= cfg.cmi_threshold)
+            print(f"  {cfg.dynamics} update {u}/{updates}: {seconds / u:.3f} s an update, "
+                  f"{int((cmi >= cfg.cmi_threshold).sum())} dynamics edges", file=sys.stderr, flush=True)
     return Trained(trainer, cmi, reward_cmi, seconds / max(updates, 1))
 
 

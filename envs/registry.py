@@ -262,8 +262,15 @@ def make_env(name: str, **kwargs: Any) -> gym.Env:
 
 
 def check_options(name: str, options: EnvOptions) -> None:
-    """``ValueError`` if ``options`` cannot build environment ``name`` (unknown names: ``KeyError``)."""
+    """``ValueError`` if ``options`` cannot build environment ``name`` (unknown names: ``KeyError``),
+    or set an option away from its default that this environment does not take (it would be ignored)."""
     entry = env_entry(name)
+    unused = [f.name for f in fields(EnvOptions) if f.name != "task" and f.name not in entry.options
+              and getattr(options, f.name) != f.default]
+    if unused:
+        flags = ", ".join("--" + o.replace("_", "-") for o in unused)
+        takes = ", ".join("--" + o.replace("_", "-") for o in entry.options) or "none"
+        raise ValueError(f"environment {name!r} does not take {flags} (its options: {takes})")
     if entry.check is not None:
         entry.check(options)
 

@@ -136,6 +136,13 @@ def test_bad_task_and_options_are_refused_with_the_valid_values() -> None:
         EnvOptions(distractors="20")
     cfg = resolve(build_config(RunConfig, router_port=7447, env="block", task="stack", distractors="3,4"))
     assert env_entry(cfg.env).kwargs(cfg.env_options) == {"distractors": "3,4", "task": "stack"}
+    # an option the env does not take would be ignored: refused, with the ones it takes
+    with pytest.raises(ValueError, match=r"'chemical' does not take --velocities \(its options: --graph, "):
+        resolve(build_config(RunConfig, router_port=7447, env="chemical", velocities=True))
+    with pytest.raises(ValueError, match="'block' does not take --num-objects, --room-size"):
+        resolve(build_config(RunConfig, router_port=7447, env="block", num_objects=3, room_size=8))
+    cfg = resolve(build_config(RunConfig, router_port=7447, env="block", velocities=True))
+    assert env_entry(cfg.env).kwargs(cfg.env_options) == {"distractors": "20,20", "velocities": True}
 
 
 def test_a_seed_fixes_the_episode(env: BlockEnv) -> None:
