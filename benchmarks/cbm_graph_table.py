@@ -271,7 +271,28 @@ def non_distractor_entries(names: tuple[str, ...]) -> np.ndarray:
     return scored_entries((len(names), len(names) + 1)) & plain[:, None] & np.append(plain, True)[None, :]
 
 
-def graph_scores(cmi: np.ndarray, spec: EnvSpec, threshold: float) -> dict[str, float]:
+def factor_kind(name: str) -> str:
+    """``"cd"``, ``"ud"`` (chapter 4's controllable / uncontrollable distractors) or ``"scene"``."""
+    return name.split(".")[0] if name.split(".")[0] in ("cd", "ud") else "scene"
+
+
+def distractor_errors_by_kind(learned: np.ndarray, truth: np.ndarray, names: tuple[str, ...]) -> dict[str, int]:
+    """Wrong off-diagonal entries that involve a distractor, counted by ``"<effect kind> <- <cause kind>"``
+    (:func:`factor_kind`; the action column is ``"action"``), e.g. ``"scene <- cd"``: a scene factor
+    read from a controllable distractor, the edge that makes a distractor an ancestor of the reward."""
+    kinds = [factor_kind(n) for n in names]
+    causes = kinds + ["action"]
+    wrong = (learned.astype(bool) != truth.astype(bool)) & scored_entries(truth.shape)
+    counts: dict[str, int] = {}
+    for i, j in zip(*np.nonzero(wrong)):
+        if kinds[i] == "scene" and causes[j] in ("scene", "action"):
+            continue
+        key = f"{kinds[i]} <- {causes[j]}"
+        counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items()))
+
+
+def graph_scores(cmi: np.ndarray, spec: EnvSpec, threshold: float) -> dict[str, Any]:
     truth = spec.global_graph
     full = score_graph(cmi, truth, threshold)
     learned = with_self_edges(cmi >= threshold)
@@ -282,7 +303,8 @@ def graph_scores(cmi: np.ndarray, spec: EnvSpec, threshold: float) -> dict[str, 
             "empty_accuracy": float(1 - truth[scored].mean()), "empty_with_self_accuracy": float(1 - truth.mean()),
             "non_distractor_f1": binary_scores(learned, truth, mask)["f1"],
             "non_distractor_accuracy": binary_scores(learned, truth, mask)["accuracy"],
-            "distractor_errors": int(((learned != truth.astype(bool)) & scored & ~mask).sum())}
+            "distractor_errors": int(((learned != truth.astype(bool)) & scored & ~mask).sum()),
+            "distractor_errors_by_kind": distractor_errors_by_kind(learned, truth, tuple(spec.factor_names))}
 
 
 def abstraction_scores(adjacency: np.ndarray, reward_parents: np.ndarray, spec: EnvSpec) -> dict[str, Any]:

@@ -67,11 +67,12 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
     markers move by ``U(-random_walk_step, random_walk_step)`` per axis and step, clipped to the table
     area. Every random choice comes from ``self.np_random``, so ``reset(seed=s)`` fixes the episode.
 
-    ``velocities=True`` adds velocity factors after the positions (8 in this scene: ``eef.vx/vy/vz``
-    in m/s, ``grp.v0/v1``, ``mov.vx/vy/vz``; :meth:`envs.manipulation_layout.SceneLayout.with_velocities`),
-    which make the state Markov (the chapter's state is not: the arm's velocity is hidden; see
-    docs/environments.md). Each belongs to its body's block of the ground truth. Not the chapter's
-    state: off by default.
+    ``velocities=True`` adds velocity factors after the positions (14 in this scene: ``eef.vx/vy/vz``
+    in m/s, the end-effector's orientation ``eef.rx/ry/rz`` and angular velocity ``eef.wx/wy/wz``,
+    ``grp.v0/v1``, ``mov.vx/vy/vz``; :meth:`envs.manipulation_layout.SceneLayout.with_velocities`),
+    which make the state Markov (the chapter's state is not: the arm's velocity and the orientation
+    its controller holds only approximately are hidden; see docs/environments.md). Each belongs to
+    its body's block of the ground truth. Not the chapter's state: off by default.
     """
 
     metadata = {"render_modes": []}
@@ -207,7 +208,8 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
         """The factor layout, action space, ground truth and configuration, as the bus carries it.
         Normalisation: positions about a point 5 cm above the table's centre, 0.1 m per unit;
         finger joints about mid-range, 0.02 m per unit (so each spans [-1, 1]); velocities (if
-        any) about 0, 0.1 m/s or 1 rad/s per unit."""
+        any) about 0, 0.1 m/s or rad/s per unit (a tool's yaw rate 1 rad/s), the end-effector's
+        orientation 0.01 rad per unit."""
         n = self.layout.num_factors
         locs, scales = _normalisation(self.layout)
         return EnvSpec(
@@ -263,7 +265,7 @@ class ManipulationEnv(gym.Env[np.ndarray, np.ndarray]):
                    for k, name in enumerate(self.layout.movable)]
         parts = [s.eef_pos(), s.gripper_qpos(), *movable, s.kinematic_pos().ravel()]
         if self.layout.velocities:
-            parts += [s.eef_vel(), s.gripper_qvel()]
+            parts += [s.eef_vel(), s.eef_rotation(), s.eef_angular_vel(), s.gripper_qvel()]
             parts += [np.r_[s.mov_vel(k), [s.mov_yaw_rate(k)] if name in self.layout.oriented else []]
                       for k, name in enumerate(self.layout.movable)]
         return np.concatenate(parts).astype(np.float32)
@@ -278,10 +280,13 @@ def _normalisation(layout: SceneLayout) -> tuple[tuple[float, ...], tuple[float,
     centre = {"x": TABLE_TOP[0], "y": TABLE_TOP[1], "z": TABLE_TOP[2] + 0.05, "0": 0.02, "1": -0.02, "yaw": 0.0}
     scale = {"0": 0.02, "1": 0.02, "yaw": 1.0}
     dims = [name.split(".")[1] for name in layout.factor_names]
-    # Velocities about 0, 0.1 m/s (1 rad/s for yaw) per unit: under uniformly random actions the
-    # end-effector's and fingers' speeds have a standard deviation of 0.06 m/s and peak below 0.2.
-    scale |= {"vyaw": 1.0}
-    return (tuple(0.0 if d[0] == "v" else float(centre[d]) for d in dims), tuple(scale.get(d, 0.1) for d in dims))
+    # Velocities about 0, 0.1 m/s or rad/s per unit (1 rad/s for a tool's yaw), the end-effector's
+    # orientation 0.01 rad per unit: under uniformly random actions the end-effector's and fingers'
+    # speeds have a standard deviation of 0.06 m/s, its angular velocity 0.03-0.1 rad/s, its
+    # orientation's deviation 0.003-0.011 rad.
+    scale |= {"vyaw": 1.0, "rx": 0.01, "ry": 0.01, "rz": 0.01}
+    dynamic = ("v", "r", "w")  # no position dimension starts with these
+    return (tuple(0.0 if d[0] in dynamic else float(centre[d]) for d in dims), tuple(scale.get(d, 0.1) for d in dims))
 
 
 def _check_config(

@@ -71,10 +71,11 @@ class SceneLayout:
     :data:`TOOL_HOOK_HALF`) or ``"open-box"`` (:data:`BOX_INNER_HALF`, :data:`BOX_WALL`)."""
     velocities: tuple[str, ...] = ()
     """Bodies whose velocities are factors too (:meth:`with_velocities`: the arm's end-effector, the
-    fingers and every movable body), after all the positions: ``eef.vx/vy/vz`` (m/s), ``grp.v0/v1``,
-    ``<cube>.vx/vy/vz`` and, for an oriented body, ``.vyaw`` (rad/s). Without them the robosuite scenes
-    are not Markov in their factors (docs/environments.md, "Velocity factors"); positions keep their
-    indices either way."""
+    fingers and every movable body), after all the positions: ``eef.vx/vy/vz`` (m/s), the
+    end-effector's orientation ``eef.rx/ry/rz`` (rad) and angular velocity ``eef.wx/wy/wz`` (rad/s),
+    ``grp.v0/v1``, ``<cube>.vx/vy/vz`` and, for an oriented body, ``.vyaw`` (rad/s). Without them the
+    robosuite scenes are not Markov in their factors (docs/environments.md, "Velocity factors");
+    positions keep their indices either way."""
 
     def with_velocities(self) -> "SceneLayout":
         """This layout with velocity factors for ``eef``, ``grp`` and every movable body."""
@@ -100,9 +101,14 @@ class SceneLayout:
         return ("x", "y", "z", "yaw") if obj in self.oriented else ("x", "y", "z")
 
     def velocity_dims(self, obj: str) -> tuple[str, ...]:
-        """The velocity dimensions of ``obj`` (none unless it is in :attr:`velocities`)."""
+        """The velocity dimensions of ``obj`` (none unless it is in :attr:`velocities`); the end-effector
+        has its orientation (``rx, ry, rz``: a rotation vector from its orientation at reset) and
+        angular velocity (``wx, wy, wz``) after its linear velocity: its controller holds the
+        orientation only approximately, and without them the arm is not Markov."""
         if obj not in self.velocities:
             return ()
+        if obj == "eef":
+            return ("vx", "vy", "vz", "rx", "ry", "rz", "wx", "wy", "wz")
         return tuple(f"v{d}" for d in self.dims(obj))
 
     @property

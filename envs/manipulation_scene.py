@@ -151,6 +151,7 @@ class CausalTableScene(RobosuiteManipulationEnv):
         self.reset()
         self.robots[0].part_controllers["right"].set_goal_update_mode("desired")
         self.contacts[:] = False
+        self.eef_rest_xmat = self._data.site_xmat[self.robots[0].eef_site_id["right"]].reshape(3, 3).copy()
 
     def commit_poses(self) -> None:
         """Make a state just written into the simulator (poses, a restored snapshot) take effect."""
@@ -182,6 +183,23 @@ class CausalTableScene(RobosuiteManipulationEnv):
         jacp = np.zeros((3, m.nv))
         mujoco.mj_jacSite(m, d, jacp, None, self.robots[0].eef_site_id["right"])
         return jacp @ d.qvel
+
+    def eef_rotation(self) -> np.ndarray:
+        """The end-effector's orientation as a rotation vector (axis x angle, radians, in the world's
+        frame) from its orientation at reset, which the controller's fixed orientation goal holds only
+        approximately (so it is state, and without it the arm is not Markov in its factors)."""
+        deviation = self._data.site_xmat[self.robots[0].eef_site_id["right"]].reshape(3, 3) @ self.eef_rest_xmat.T
+        quat, rotvec = np.zeros(4), np.zeros(3)
+        mujoco.mju_mat2Quat(quat, deviation.ravel())
+        mujoco.mju_quat2Vel(rotvec, quat, 1.0)
+        return rotvec
+
+    def eef_angular_vel(self) -> np.ndarray:
+        """World-frame angular velocity (rad/s) of the end-effector site."""
+        m, d = self.sim.model._model, self._data
+        jacr = np.zeros((3, m.nv))
+        mujoco.mj_jacSite(m, d, None, jacr, self.robots[0].eef_site_id["right"])
+        return jacr @ d.qvel
 
     def gripper_qvel(self) -> np.ndarray:
         """Velocities (m/s) of the two finger slide joints."""

@@ -44,7 +44,7 @@ Resulting classes (:func:`causal.abstraction.cdl_abstraction`): controllable ``e
 ``mov``; action-relevant ``unm``, ``rand``; action-irrelevant ``mk1``-``mk3``.
 
 **Velocity factors** (``velocities=True``: :meth:`envs.manipulation_layout.SceneLayout.with_velocities`)
-belong to their body: ``eef.vx/vy/vz`` to ``eef``, ``grp.v0/v1`` to ``grp``, a cube's velocities to
+belong to their body: ``eef.vx/vy/vz``, ``eef.rx/ry/rz`` (orientation) and ``eef.wx/wy/wz`` to ``eef``, ``grp.v0/v1`` to ``grp``, a cube's velocities to
 the cube. Every rule above then applies to a body's positions and velocities together (the rows
 and columns of a body are all its factors): a body's next position and velocity depend on its
 current ones, contact couples the velocities as it couples the positions, and the action drives

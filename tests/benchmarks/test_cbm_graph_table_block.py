@@ -87,3 +87,21 @@ def test_runs_of_single_seeds_merge_into_one_table(tmp_path: Path) -> None:
         merge_tables([paths[0], paths[0]])
     with pytest.raises(ValueError, match="different factors"):
         merge_tables([paths[0], run(2, ["b"])])
+
+
+def test_distractor_errors_are_counted_by_the_kinds_they_join() -> None:
+    import numpy as np
+
+    from benchmarks.cbm_graph_table import distractor_errors_by_kind
+
+    names = ("eef.x", "mov1.x", "cd.0", "cd.1", "ud.0")
+    truth = np.eye(5, 6, dtype=np.uint8)
+    truth[:4, 5] = 1  # the scene and the controllable distractors read the action
+    learned = truth.copy()
+    learned[0, 2] = learned[1, 3] = 1  # scene <- cd, twice: each makes that cd an ancestor of the scene
+    learned[2, 3] = 1  # cd <- cd
+    learned[4, 1] = 1  # ud <- scene
+    learned[3, 5] = 0  # a missed cd <- action
+    learned[0, 1] = 1  # a scene error: not a distractor's
+    assert distractor_errors_by_kind(learned, truth, names) == {
+        "cd <- action": 1, "cd <- cd": 1, "scene <- cd": 2, "ud <- scene": 1}

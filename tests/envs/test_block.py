@@ -160,14 +160,15 @@ def test_a_seed_fixes_the_episode(env: BlockEnv) -> None:
 
 
 def test_velocity_factors_follow_the_positions_and_leave_the_dynamics_alone(env: BlockEnv) -> None:
-    """``velocities=True``: 14 velocity factors after the 17 positions (which keep their indices),
+    """``velocities=True``: 20 velocity factors after the 17 positions (which keep their indices),
     each in its body's block of the truth; the same seed and actions give the same positions, rewards
     and distractors; the velocities are the simulator's (the end-effector's agrees with its motion)."""
     layout = BLOCK.with_velocities()
-    assert layout.factor_names[:SCENE] == BLOCK.factor_names and layout.num_factors == SCENE + 14
-    assert layout.factor_names[SCENE:SCENE + 5] == ("eef.vx", "eef.vy", "eef.vz", "grp.v0", "grp.v1")
+    assert layout.factor_names[:SCENE] == BLOCK.factor_names and layout.num_factors == SCENE + 20
+    assert layout.factor_names[SCENE:SCENE + 11] == tuple(f"eef.{d}" for d in ("vx", "vy", "vz", "rx", "ry", "rz", "wx", "wy",
+                                                                              "wz")) + ("grp.v0", "grp.v1")
     assert layout.factor_slice("mov1") == BLOCK.factor_slice("mov1")
-    assert layout.factor_indices("mov1").tolist() == [5, 6, 7, SCENE + 5, SCENE + 6, SCENE + 7]
+    assert layout.factor_indices("mov1").tolist() == [5, 6, 7, SCENE + 11, SCENE + 12, SCENE + 13]
     truth, plain = global_graph(layout), global_graph(BLOCK)
     np.testing.assert_array_equal(truth[:SCENE, :SCENE], plain[:, :SCENE])
     np.testing.assert_array_equal(truth[:SCENE, -1], plain[:, -1])
@@ -181,24 +182,27 @@ def test_velocity_factors_follow_the_positions_and_leave_the_dynamics_alone(env:
     fast = BlockEnv(velocities=True, task="pick")
     try:
         spec = fast.env_spec()
-        assert spec.num_factors == SCENE + 14 + 40 and spec.global_graph.shape == (71, 72)
-        assert spec.factor_names[SCENE + 14] == "cd.0" and spec.factor_objects[SCENE:SCENE + 5] == ("eef",) * 3 + ("grp",) * 2
-        assert spec.factor_locs[SCENE] == 0.0 and spec.factor_scales[SCENE] == pytest.approx(0.1)
+        assert spec.num_factors == SCENE + 20 + 40 and spec.global_graph.shape == (77, 78)
+        assert spec.factor_names[SCENE + 20] == "cd.0" and spec.factor_objects[SCENE:SCENE + 11] == ("eef",) * 9 + ("grp",) * 2
+        assert spec.factor_locs[SCENE:SCENE + 9] == (0.0,) * 9
+        np.testing.assert_allclose(spec.factor_scales[SCENE:SCENE + 9], [0.1] * 3 + [0.01] * 3 + [0.1] * 3)
         np.testing.assert_array_equal(spec.reward_parents[:SCENE], env.reward_parents[:SCENE])
         actions = np.tile([1.0, 0.0, 0.0, 1.0], (6, 1))
         obs_v, _ = fast.reset(seed=7)
         obs, _ = env.reset(seed=7)
         np.testing.assert_array_equal(obs_v[:SCENE], obs[:SCENE])
-        np.testing.assert_allclose(obs_v[SCENE:SCENE + 14], 0.0, atol=1e-3)  # everything at rest
+        np.testing.assert_allclose(obs_v[SCENE:SCENE + 20], 0.0, atol=1e-3)  # everything at rest, as at reset
         for a in actions:
             step_v, step = fast.step(a), env.step(a)
             np.testing.assert_array_equal(step_v[0][:SCENE], step[0][:SCENE])
-            np.testing.assert_array_equal(step_v[0][SCENE + 14:], step[0][SCENE:])
+            np.testing.assert_array_equal(step_v[0][SCENE + 20:], step[0][SCENE:])
             assert step_v[1] == step[1]
         # the arm moves along +x at about the speed its positions show (the goal runs 3 cm ahead)
         moved = (step_v[0][0] - obs_v[0]) / (len(actions) / fast.control_freq)
         assert step_v[0][SCENE] > 0.5 * moved > 0 and abs(step_v[0][SCENE]) < 0.5
-        np.testing.assert_allclose(step_v[0][SCENE + 5:SCENE + 14], 0.0, atol=1e-3)  # untouched cubes rest
+        np.testing.assert_allclose(step_v[0][SCENE + 11:SCENE + 20], 0.0, atol=1e-3)  # untouched cubes rest
+        rotation, spin = step_v[0][SCENE + 3:SCENE + 6], step_v[0][SCENE + 6:SCENE + 9]
+        assert 0 < np.abs(rotation).max() < 0.05 and np.abs(spin).max() < 1.0  # the held orientation wobbles
         with pytest.raises(KeyError, match="cannot intervene on 'mov1.vx'"):
             fast.intervene({"mov1.vx": 0.1})
     finally:

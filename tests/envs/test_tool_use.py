@@ -153,14 +153,14 @@ def test_bad_task_is_refused_with_the_valid_values() -> None:
 
 
 def test_velocity_factors_include_the_tools_yaw_rate_in_the_worlds_frame() -> None:
-    """``velocities=True``: 12 velocity factors after the 15 positions, the tool's ``vyaw`` last of its
+    """``velocities=True``: 18 velocity factors after the 15 positions, the tool's ``vyaw`` last of its
     four; a free joint's angular velocity is in the body's frame, so a tool on its side turning
     about its own y axis turns about the world's vertical."""
     env = ToolUseEnv(velocities=True, distractors="0,0")
     try:
         obs, _ = env.reset(seed=2)
         names = env.factor_names
-        assert len(names) == SCENE + 12 and names[SCENE + 5:SCENE + 9] == ("tool.vx", "tool.vy", "tool.vz", "tool.vyaw")
+        assert len(names) == SCENE + 18 and names[SCENE + 11:SCENE + 15] == ("tool.vx", "tool.vy", "tool.vz", "tool.vyaw")
         np.testing.assert_allclose(obs[SCENE:], 0.0, atol=1e-3)
         scene, v = env.scene, env.scene.mov_qvel_addr[0]
         scene.sim.data.qvel[v + 3:v + 6] = [0.0, 0.0, 2.0]
@@ -170,6 +170,6 @@ def test_velocity_factors_include_the_tools_yaw_rate_in_the_worlds_frame() -> No
         scene.sim.data.qvel[v + 3:v + 6] = [0.0, 2.0, 0.0]
         assert scene.mov_yaw_rate(0) == pytest.approx(2.0)
         scene.sim.data.qvel[v:v + 3] = [0.1, -0.2, 0.3]
-        np.testing.assert_allclose(env._observation()[SCENE + 5:SCENE + 9], [0.1, -0.2, 0.3, 2.0], rtol=1e-6)
+        np.testing.assert_allclose(env._observation()[SCENE + 11:SCENE + 15], [0.1, -0.2, 0.3, 2.0], rtol=1e-6)
     finally:
         env.close()
