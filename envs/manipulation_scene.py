@@ -179,10 +179,7 @@ class CausalTableScene(RobosuiteManipulationEnv):
 
     def eef_vel(self) -> np.ndarray:
         """World-frame linear velocity (m/s) of the end-effector site: its Jacobian times ``qvel``."""
-        m, d = self.sim.model._model, self._data
-        jacp = np.zeros((3, m.nv))
-        mujoco.mj_jacSite(m, d, jacp, None, self.robots[0].eef_site_id["right"])
-        return jacp @ d.qvel
+        return self._eef_jacobian(linear=True) @ self._data.qvel
 
     def eef_rotation(self) -> np.ndarray:
         """The end-effector's orientation as a rotation vector (axis x angle, radians, in the world's
@@ -196,10 +193,15 @@ class CausalTableScene(RobosuiteManipulationEnv):
 
     def eef_angular_vel(self) -> np.ndarray:
         """World-frame angular velocity (rad/s) of the end-effector site."""
-        m, d = self.sim.model._model, self._data
-        jacr = np.zeros((3, m.nv))
-        mujoco.mj_jacSite(m, d, None, jacr, self.robots[0].eef_site_id["right"])
-        return jacr @ d.qvel
+        return self._eef_jacobian(linear=False) @ self._data.qvel
+
+    def _eef_jacobian(self, *, linear: bool) -> np.ndarray:
+        """``[3, nv]``: the end-effector site's translational (``linear``) or rotational Jacobian."""
+        m = self.sim.model._model
+        jac = np.zeros((3, m.nv))
+        mujoco.mj_jacSite(m, self._data, jac if linear else None, None if linear else jac,
+                          self.robots[0].eef_site_id["right"])
+        return jac
 
     def gripper_qvel(self) -> np.ndarray:
         """Velocities (m/s) of the two finger slide joints."""
