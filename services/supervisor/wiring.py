@@ -66,7 +66,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
     if cfg.target_f1 and not entry.has_global_truth:
         raise ValueError(f"environment {cfg.env!r} has no true global graph to score --target-metric against")
     run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
-                            f"{cfg.env}-{Path(cfg.env_options.graph).stem if entry.options else cfg.method}"
+                            f"{cfg.env}-{Path(cfg.env_options.graph).stem if 'graph' in entry.options else cfg.method}"
                             f"-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_id = "".join(c if c.isalnum() or c in "_.-" else "-" for c in run_id)
     return dataclasses.replace(cfg, run_id=run_id, run_dir=cfg.run_dir or f"runs/{run_id}",

@@ -143,6 +143,9 @@ def test_bad_task_and_options_are_refused_with_the_valid_values() -> None:
         resolve(build_config(RunConfig, router_port=7447, env="block", num_objects=3, room_size=8))
     cfg = resolve(build_config(RunConfig, router_port=7447, env="block", velocities=True))
     assert env_entry(cfg.env).kwargs(cfg.env_options) == {"distractors": "20,20", "velocities": True}
+    # a run is named by its Chemical graph only on Chemical, else by its method
+    assert cfg.run_id.startswith("block-cdl-s0-")
+    assert resolve(build_config(RunConfig, router_port=7447, env="chemical")).run_id.startswith("chemical-full-s0-")
 
 
 def test_a_seed_fixes_the_episode(env: BlockEnv) -> None:
