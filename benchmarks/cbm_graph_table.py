@@ -273,7 +273,7 @@ def non_distractor_entries(names: tuple[str, ...]) -> np.ndarray:
 
 def factor_kind(name: str) -> str:
     """``"cd"``, ``"ud"`` (chapter 4's controllable / uncontrollable distractors) or ``"scene"``."""
-    return name.split(".")[0] if name.split(".")[0] in ("cd", "ud") else "scene"
+    return name.split(".", 1)[0] if is_distractor(name) else "scene"
 
 
 def distractor_errors_by_kind(learned: np.ndarray, truth: np.ndarray, names: tuple[str, ...]) -> dict[str, int]:

@@ -6,6 +6,7 @@ scripted skills (:mod:`envs.skills`) can be used without loading robosuite.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -111,8 +112,10 @@ class SceneLayout:
             return ("vx", "vy", "vz", "rx", "ry", "rz", "wx", "wy", "wz")
         return tuple(f"v{d}" for d in self.dims(obj))
 
-    @property
+    @cached_property
     def _factors(self) -> tuple[tuple[str, str], ...]:
+        """``(object, dimension)`` of every factor, positions first (computed once: the truth reads
+        the layout at every step)."""
         positions = tuple((o, d) for o in self.objects for d in self.dims(o))
         return positions + tuple((o, d) for o in self.objects for d in self.velocity_dims(o))
 
