@@ -52,7 +52,7 @@ import torch
 
 from causal.abstraction import abstraction_accuracy, cdl_abstraction, minimal_abstraction, with_self_edges
 from causal.cbm import CBMTrainer
-from causal.cbm_config import CBMConfig
+from causal.cbm_config import TARGETS, CBMConfig
 from causal.cbm_reward import CausalRewardModel
 from causal.factored import FactorLayout
 from causal.graph_metrics import binary_scores, score_graph, scored_entries
@@ -423,6 +423,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="updates between CMI estimates (averaged, and the causal term's parents)")
     p.add_argument("--ema", type=float, default=0.999, help="moving-average weight per update (the evaluator's)")
     p.add_argument("--lr", type=float, default=CBMConfig.lr)
+    p.add_argument("--target", choices=TARGETS, default=CBMConfig.target,
+                   help="implicit dynamics' candidates: each factor's change (the authors' code), its next value "
+                        "(eq. 4.1's label) or per factor the one that varies less (auto); CBMConfig.target")
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--variants", nargs="+", default=["implicit", "explicit"])
     p.add_argument("--extra-negatives", type=int, nargs="*", default=[1024],
@@ -472,7 +475,7 @@ def main(argv: list[str] | None = None) -> None:
         spec, data = collect(env_kwargs, args.steps, seed, args.env, grasp_targets)
         results = {}
         for variant in args.variants:
-            cfg = CBMConfig(dynamics=variant, lr=args.lr)
+            cfg = CBMConfig(dynamics=variant, lr=args.lr, target=args.target)
             trained = train(spec, cfg, data, args.updates, args.estimate_every, args.ema, seed)
             results[variant] = evaluate(trained, spec, data, seed, tuple(args.extra_negatives))
             rows.append({"variant": variant, "seed": seed, "seconds_per_update": trained.seconds_per_update,

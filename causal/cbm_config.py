@@ -9,6 +9,7 @@ from causal.cdl import CDLConfig
 from proto.settings import doc
 
 DYNAMICS = ("implicit", "explicit")
+TARGETS = ("delta", "next", "auto")
 
 
 @dataclass(frozen=True)
@@ -17,6 +18,10 @@ class CBMConfig:
 
     dynamics: str = doc("implicit", "dynamics model: implicit (InfoNCE energies, CMI by eq. 4.3) or explicit "
                                     "(CDL's Gaussian/categorical heads; the chapter's comparison)", choices=DYNAMICS)
+    target: str = doc("delta", "implicit dynamics: what a continuous factor's candidates are: its change "
+                               "s^j_{t+1} - s^j_t (the authors' code), its next value s^j_{t+1} (eq. 4.1's label), "
+                               "or per factor whichever varies less in the first batch (auto); see "
+                               "docs/methods/cbm.md", choices=TARGETS)
     feature_hidden: int = doc(32, "hidden width of each per-(output, input) feature network (as CDL's here)")
     feature_dim: int = doc(32, "size of every per-input feature vector")
     predictor_hidden: int = doc(64, "hidden width of each per-output head (dynamics and reward)")
@@ -43,6 +48,8 @@ class CBMConfig:
     def __post_init__(self) -> None:
         if self.dynamics not in DYNAMICS:
             raise ValueError(f"dynamics must be one of {DYNAMICS}, got {self.dynamics!r}")
+        if self.target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
         for name in ("feature_hidden", "feature_dim", "predictor_hidden", "embed_dim", "candidate_hidden",
                      "reward_hidden", "num_negatives", "eval_negatives", "cmi_samples", "batch_size", "causal_every"):
             if getattr(self, name) < 1:

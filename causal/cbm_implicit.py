@@ -2,7 +2,10 @@
 
 For every next factor j the energy is ``f(s, a, c) = <enc(M (.) (s, a))_j, enc_j(c)>``, where c is a
 candidate value of ``s^j_{t+1}``: the change ``delta s_j`` (normalised) for a continuous factor, the
-category for a categorical one. ``enc(s, a)`` is the masked network of :mod:`causal.cbm_nets`, so the
+category for a categorical one. With ``CBMConfig.target = "next"`` a continuous factor's candidate is
+its next value itself (eq. 4.1's label) and its "delta range" is that of the next values: the change
+needs the factor's own value at t, which redundant inputs can stand in for (docs/methods/cbm.md).
+``"auto"`` chooses per factor, from the first batch, whichever of the two varies less. ``enc(s, a)`` is the masked network of :mod:`causal.cbm_nets`, so the
 full model f_impl (all inputs), every drop-one model psi^i (input i masked) and the causal model
 (learned parents) share one network and one feature computation (the text's "same masking
 technique [...] to combine f_impl and psi into one network").
@@ -69,6 +72,8 @@ class ImplicitDynamics(nn.Module):
             # from published weights draws its negatives from the same range.
             self.delta_low = nn.Parameter(torch.zeros(jc, d), requires_grad=False)
             self.delta_high = nn.Parameter(torch.zeros(jc, d), requires_grad=False)
+            if cfg.target == "auto":  # chosen per factor from the first batch, travels with the weights
+                self.label_is_next = nn.Parameter(torch.zeros(jc), requires_grad=False)
         if jk:
             self.class_codes = stacked(jk, codec.max_cat, e, fan_in=e)
             valid = torch.zeros(jk, codec.max_cat, dtype=torch.bool)
@@ -79,8 +84,27 @@ class ImplicitDynamics(nn.Module):
     # ---------------------------------------------------------------- candidates
 
     def label_deltas(self, state: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
-        """``[Jc, B, D]`` normalised changes of the continuous factors (zero in padded dimensions)."""
-        return (self.codec.continuous_values(next_state) - self.codec.continuous_values(state)).permute(1, 0, 2)
+        """``[Jc, B, D]`` labels of the continuous factors (zero in padded dimensions): their normalised
+        changes, or with ``target = "next"`` their normalised next values (the candidates' "delta range"
+        is then the next values' range); ``"auto"``: each factor's as :meth:`choose_labels` chose."""
+        label = self.codec.continuous_values(next_state)
+        if self.cfg.target == "delta":
+            label = label - self.codec.continuous_values(state)
+        elif self.cfg.target == "auto":
+            label = label - (1.0 - self.label_is_next)[None, :, None] * self.codec.continuous_values(state)
+        return label.permute(1, 0, 2)
+
+    @torch.no_grad()
+    def choose_labels(self, state: torch.Tensor, next_state: torch.Tensor) -> None:
+        """``target = "auto"``: each continuous factor's label from these transitions (the first batch), its
+        next value where that varies less than its change does, else its change. A factor that persists
+        (a position) changes by less than it varies; one that is overwritten every step (a controllable
+        distractor, ``cd' = P a``) changes by more, about twice the variance when successive values are
+        independent. Ties (a factor constant here) keep the change."""
+        current, following = self.codec.continuous_values(state), self.codec.continuous_values(next_state)
+        spread_next = following.var(dim=0, unbiased=False).sum(-1)
+        spread_change = (following - current).var(dim=0, unbiased=False).sum(-1)
+        self.label_is_next.copy_((spread_next < spread_change).to(self.label_is_next.dtype))
 
     @torch.no_grad()
     def observe_deltas(self, deltas: torch.Tensor, first: bool) -> None:
@@ -256,7 +280,11 @@ class ImplicitDynamics(nn.Module):
             candidates = self.negatives(num_candidates or self.cfg.eval_negatives, generator)
             best = self.shared_scores(u[codec.cont_index], self.codes(candidates)[0])[:, 0].argmax(-1)  # [Jc, B]
             delta = candidates.gather(1, best[..., None].expand(-1, -1, candidates.shape[-1]))
-            values = codec.continuous_values(state) + delta.permute(1, 0, 2)
+            values = delta.permute(1, 0, 2)
+            if self.cfg.target == "delta":
+                values = codec.continuous_values(state) + values
+            elif self.cfg.target == "auto":
+                values = values + (1.0 - self.label_is_next)[None, :, None] * codec.continuous_values(state)
             raw = values * codec.cont_scale[None, :, None] + codec.cont_loc[None, :, None]
             rows = torch.arange(state.shape[0])[:, None]
             for n in range(len(codec.cont_factors)):

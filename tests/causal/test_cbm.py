@@ -167,3 +167,64 @@ def test_weights_and_checkpoints_carry_the_whole_model() -> None:
     torch.testing.assert_close(other.model.reward_cmi(s, a, torch.zeros(32)), trainer.model.reward_cmi(s, a, torch.zeros(32)))
     with pytest.raises(ValueError, match="dynamics must be one of"):
         CBMConfig(dynamics="both")
+
+
+def _projections_batch(g: torch.Generator, projection: torch.Tensor, b: int) -> tuple[torch.Tensor, ...]:
+    """Chapter 4's controllable distractors alone: ``s'_k = P_k . a`` for a continuous action, ``s_k =
+    P_k . a_prev`` (so the state holds redundant copies of the previous action), no reward."""
+    prev, a = (torch.rand(b, projection.shape[1], generator=g) * 2 - 1 for _ in range(2))
+    return prev @ projection.T, a, a @ projection.T
+
+
+@pytest.mark.parametrize("target", ["delta", "next"])
+def test_next_value_target_keeps_redundant_copies_of_the_previous_action_out_of_the_graph(target: str) -> None:
+    """6 projections of a 3-D action: their change ``P_k a - s_k`` needs ``s_k``, which any 3 other
+    factors also determine; a model of the change leans on those copies and the drop-one CMI counts
+    them as edges. Eq. 4.1's label, the next value itself, needs the action alone."""
+    k, d = 6, 3
+    projection = torch.rand(k, d, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    projection /= projection.abs().sum(1, keepdim=True)
+    layout = _layout(("continuous",) * k, (1,) * k, ("continuous", d))
+    cfg = CBMConfig(target=target, num_negatives=64, eval_negatives=1024, lr=3e-3, batch_size=64)
+    trainer, g = CBMTrainer(layout, cfg, seed=0), torch.Generator().manual_seed(0)
+    for _ in range(600):
+        trainer.update(*_projections_batch(g, projection, 64))
+    cmi = trainer.model.dynamics_cmi(*_projections_batch(g, projection, 256), torch.Generator().manual_seed(1)).numpy()
+    between = cmi[:, :k][~np.eye(k, dtype=bool)]
+    assert cmi[:, k].min() > 0.3, cmi  # every factor reads the action
+    if target == "next":
+        assert between.max() < cfg.cmi_threshold, cmi
+    else:
+        assert between.max() >= cfg.cmi_threshold, cmi  # the spurious edges the option exists for
+
+
+def test_auto_target_takes_next_values_for_overwritten_factors_and_changes_for_persistent_ones() -> None:
+    """``target = "auto"``: a factor overwritten by the action (``c' = a``) varies less than its change and
+    gets its next value as the label; a persistent one (``x' = x + 0.1 a``) gets its change; the choice
+    travels with the weights and prediction adds the change back where it is one."""
+    layout = _layout(("continuous", "continuous"), (1, 1), ("continuous", 1))
+    g = torch.Generator().manual_seed(0)
+    x, c, a = (torch.rand(64, 1, generator=g) * 2 - 1 for _ in range(3))
+    state, nxt = torch.cat([x, c], 1), torch.cat([x + 0.1 * a, a], 1)
+    cfg = CBMConfig(target="auto", feature_hidden=8, feature_dim=8, predictor_hidden=8, embed_dim=8)
+    trainer = CBMTrainer(layout, cfg, seed=0)
+    trainer.update(state, a, nxt)
+    dynamics = trainer.model.dynamics
+    assert dynamics.label_is_next.tolist() == [0.0, 1.0]
+    labels = dynamics.label_deltas(state, nxt)
+    torch.testing.assert_close(labels[0, :, 0], 0.1 * a[:, 0])
+    torch.testing.assert_close(labels[1, :, 0], a[:, 0])
+    trainer.update(state, a, -nxt)  # later batches widen the range but never change the choice
+    assert dynamics.label_is_next.tolist() == [0.0, 1.0]
+    rebuilt = model_from_config(json.loads(trainer.config_json()))
+    import_tensors(rebuilt, export_tensors(trainer.model))
+    assert rebuilt.dynamics.label_is_next.tolist() == [0.0, 1.0]
+    predicted = rebuilt.dynamics.predict(state, a, num_candidates=64, generator=torch.Generator().manual_seed(1))
+    low, high = rebuilt.dynamics.delta_low[:, 0], rebuilt.dynamics.delta_high[:, 0]
+    assert bool(((predicted[:, 0] - x[:, 0] >= low[0] - 1e-6) & (predicted[:, 0] - x[:, 0] <= high[0] + 1e-6)).all())
+    assert bool(((predicted[:, 1] >= low[1] - 1e-6) & (predicted[:, 1] <= high[1] + 1e-6)).all())
+    names = dict(CBMTrainer(layout, CBMConfig(), seed=0).model.named_parameters())
+    assert "dynamics.label_is_next" in dict(trainer.model.named_parameters())
+    assert "dynamics.label_is_next" not in names  # delta and next: the weights of earlier runs still load
+    with pytest.raises(ValueError, match="target must be one of"):
+        CBMConfig(target="value")
