@@ -5,10 +5,12 @@ candidate value of ``s^j_{t+1}``: the change ``delta s_j`` (normalised) for a co
 category for a categorical one. With ``CBMConfig.target = "next"`` a continuous factor's candidate is
 its next value itself (eq. 4.1's label) and its "delta range" is that of the next values: the change
 needs the factor's own value at t, which redundant inputs can stand in for (docs/methods/cbm.md).
-``"auto"`` chooses per factor, from the first batch, whichever of the two varies less. ``enc(s, a)`` is the masked network of :mod:`causal.cbm_nets`, so the
-full model f_impl (all inputs), every drop-one model psi^i (input i masked) and the causal model
-(learned parents) share one network and one feature computation (the text's "same masking
-technique [...] to combine f_impl and psi into one network").
+``"auto"`` chooses per factor, from the first batch, whichever of the two varies less.
+
+``enc(s, a)`` is the masked network of :mod:`causal.cbm_nets`, so the full model f_impl (all inputs),
+every drop-one model psi^i (input i masked) and the causal model (learned parents) share one network
+and one feature computation (the text's "same masking technique [...] to combine f_impl and psi into
+one network").
 
 Training (Algorithm 3, eqs. 4.1, 4.4, 4.5): InfoNCE of the label against N negatives drawn uniformly
 over the factor's delta range (Latin hypercube: stratified, so marginally uniform), plus
@@ -87,12 +89,17 @@ class ImplicitDynamics(nn.Module):
         """``[Jc, B, D]`` labels of the continuous factors (zero in padded dimensions): their normalised
         changes, or with ``target = "next"`` their normalised next values (the candidates' "delta range"
         is then the next values' range); ``"auto"``: each factor's as :meth:`choose_labels` chose."""
-        label = self.codec.continuous_values(next_state)
-        if self.cfg.target == "delta":
-            label = label - self.codec.continuous_values(state)
-        elif self.cfg.target == "auto":
-            label = label - (1.0 - self.label_is_next)[None, :, None] * self.codec.continuous_values(state)
-        return label.permute(1, 0, 2)
+        return (self.codec.continuous_values(next_state) - self._label_origin(state)).permute(1, 0, 2)
+
+    def _label_origin(self, state: torch.Tensor) -> torch.Tensor:
+        """``[B, Jc, D]`` what each label is measured from: the factor's value at t for a change, 0 for a
+        next value (a label plus its origin is the next value)."""
+        current = self.codec.continuous_values(state)
+        if self.cfg.target == "next":
+            return torch.zeros_like(current)
+        if self.cfg.target == "auto":
+            return (1.0 - self.label_is_next)[None, :, None] * current
+        return current
 
     @torch.no_grad()
     def choose_labels(self, state: torch.Tensor, next_state: torch.Tensor) -> None:
@@ -280,11 +287,7 @@ class ImplicitDynamics(nn.Module):
             candidates = self.negatives(num_candidates or self.cfg.eval_negatives, generator)
             best = self.shared_scores(u[codec.cont_index], self.codes(candidates)[0])[:, 0].argmax(-1)  # [Jc, B]
             delta = candidates.gather(1, best[..., None].expand(-1, -1, candidates.shape[-1]))
-            values = delta.permute(1, 0, 2)
-            if self.cfg.target == "delta":
-                values = codec.continuous_values(state) + values
-            elif self.cfg.target == "auto":
-                values = values + (1.0 - self.label_is_next)[None, :, None] * codec.continuous_values(state)
+            values = self._label_origin(state) + delta.permute(1, 0, 2)
             raw = values * codec.cont_scale[None, :, None] + codec.cont_loc[None, :, None]
             rows = torch.arange(state.shape[0])[:, None]
             for n in range(len(codec.cont_factors)):
