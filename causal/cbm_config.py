@@ -18,10 +18,10 @@ class CBMConfig:
 
     dynamics: str = doc("implicit", "dynamics model: implicit (InfoNCE energies, CMI by eq. 4.3) or explicit "
                                     "(CDL's Gaussian/categorical heads; the chapter's comparison)", choices=DYNAMICS)
-    target: str = doc("delta", "implicit dynamics: what a continuous factor's candidates are: its change "
-                               "s^j_{t+1} - s^j_t (the authors' code), its next value s^j_{t+1} (eq. 4.1's label), "
-                               "or per factor whichever varies less in the first batch (auto); see "
-                               "docs/methods/cbm.md", choices=TARGETS)
+    target: str = doc("next", "implicit dynamics: what a continuous factor's candidates are: its next value "
+                              "s^j_{t+1} (eq. 4.1's label), its change s^j_{t+1} - s^j_t (delta: the authors' code), "
+                              "or per factor whichever varies less in the first batch (auto); see "
+                              "docs/methods/cbm.md", choices=TARGETS)
     feature_hidden: int = doc(32, "hidden width of each per-(output, input) feature network (as CDL's here)")
     feature_dim: int = doc(32, "size of every per-input feature vector")
     predictor_hidden: int = doc(64, "hidden width of each per-output head (dynamics and reward)")

@@ -137,7 +137,7 @@ def test_implicit_model_learns_the_edges_the_reward_parents_and_predicts_by_argm
         trainer.update(*_toy_batch(g, 64))
     s, a, nxt, r = _toy_batch(g, 512)
     cmi = trainer.model.dynamics_cmi(s, a, nxt, torch.Generator().manual_seed(1)).numpy()
-    # x' reads the action; its self-edge is invisible to a model of delta x (x' - x = a), and is assumed anyway
+    # x' reads the action (and x itself: a self-edge, assumed and never scored)
     assert cmi[0, 3] > 0.3, cmi
     off = [cmi[0, 1], cmi[0, 2], *cmi[1, [0, 2, 3]], *cmi[2, [0, 1, 3]]]
     assert max(off) < cfg.cmi_threshold, cmi
@@ -151,7 +151,8 @@ def test_implicit_model_learns_the_edges_the_reward_parents_and_predicts_by_argm
 
 def test_weights_and_checkpoints_carry_the_whole_model() -> None:
     layout = _layout(("continuous", "categorical"), (1, 3), ("categorical", 4))
-    trainer = CBMTrainer(layout, CBMConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8, embed_dim=8), seed=0)
+    cfg = CBMConfig(target="delta", feature_hidden=8, feature_dim=8, predictor_hidden=8, embed_dim=8)  # labels: changes
+    trainer = CBMTrainer(layout, cfg, seed=0)
     g = torch.Generator().manual_seed(0)
     s = torch.cat([torch.randn(32, 1, generator=g), torch.randint(0, 3, (32, 1), generator=g).float()], dim=1)
     a = torch.randint(0, 4, (32, 1), generator=g).float()
