@@ -121,9 +121,7 @@ class CBMTrainer:
         dynamics = self.model.dynamics
         if isinstance(dynamics, ImplicitDynamics):
             if dynamics.codec.cont_factors:
-                if not self.range_seen and self.cfg.target == "auto":
-                    dynamics.choose_labels(state, next_state)
-                dynamics.observe_deltas(dynamics.label_deltas(state, next_state), first=not self.range_seen)
+                dynamics.observe_labels(state, next_state, first=not self.range_seen)
                 self.range_seen = True
             nce, reg = dynamics.training_losses(state, action, next_state, parents, self.generator)
             per_term, loss = nce.detach().mean(dim=(0, 2)), (nce + reg).mean(dim=2).sum()

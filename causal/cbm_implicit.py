@@ -91,15 +91,23 @@ class ImplicitDynamics(nn.Module):
         is then the next values' range); ``"auto"``: each factor's as :meth:`choose_labels` chose."""
         return (self.codec.continuous_values(next_state) - self._label_origin(state)).permute(1, 0, 2)
 
-    def _label_origin(self, state: torch.Tensor) -> torch.Tensor:
+    def _label_origin(self, state: torch.Tensor) -> torch.Tensor | float:
         """``[B, Jc, D]`` what each label is measured from: the factor's value at t for a change, 0 for a
-        next value (a label plus its origin is the next value)."""
-        current = self.codec.continuous_values(state)
+        next value (a label plus its origin is the next value; with next values alone, the scalar 0)."""
         if self.cfg.target == "next":
-            return torch.zeros_like(current)
+            return 0.0
+        current = self.codec.continuous_values(state)
         if self.cfg.target == "auto":
             return (1.0 - self.label_is_next)[None, :, None] * current
         return current
+
+    @torch.no_grad()
+    def observe_labels(self, state: torch.Tensor, next_state: torch.Tensor, first: bool) -> None:
+        """Widen the label range to cover this batch's labels; on the ``first`` batch, with
+        ``target = "auto"``, choose each factor's label first (:meth:`choose_labels`)."""
+        if first and self.cfg.target == "auto":
+            self.choose_labels(state, next_state)
+        self.observe_deltas(self.label_deltas(state, next_state), first)
 
     @torch.no_grad()
     def choose_labels(self, state: torch.Tensor, next_state: torch.Tensor) -> None:
