@@ -18,7 +18,8 @@ which makes them non-deterministic) and the explicit model. Writes ``<out>/proje
     python -m benchmarks.cbm_projections --target next
     python -m benchmarks.cbm_projections --target delta --noise 0.05
     python -m benchmarks.cbm_projections --target delta --l2 1e-4
-    python -m benchmarks.cbm_projections --dynamics explicit
+    python -m benchmarks.cbm_projections --dynamics explicit --target delta
+    python -m benchmarks.cbm_projections --dynamics explicit --target next
 """
 from __future__ import annotations
 

@@ -126,6 +126,6 @@ def dense_rollout_step(model: DenseDynamics, sample: bool = False, generator: to
     @torch.no_grad()
     def step(states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         out = model.outputs(states, actions)
-        return next_state_from_outputs(model.codec, out, states, sample, generator, log_std_range)
+        return next_state_from_outputs(model.codec, out, states, sample, generator, log_std_range, model.cfg.target)
 
     return step

@@ -18,10 +18,10 @@ class CBMConfig:
 
     dynamics: str = doc("implicit", "dynamics model: implicit (InfoNCE energies, CMI by eq. 4.3) or explicit "
                                     "(CDL's Gaussian/categorical heads; the chapter's comparison)", choices=DYNAMICS)
-    target: str = doc("next", "implicit dynamics: what a continuous factor's candidates are: its next value "
-                              "s^j_{t+1} (eq. 4.1's label), its change s^j_{t+1} - s^j_t (delta: the authors' code), "
-                              "or per factor whichever varies less in the first batch (auto); see "
-                              "docs/methods/cbm.md", choices=TARGETS)
+    target: str = doc("next", "the dynamics' label for a continuous factor: its next value s^j_{t+1} (eq. "
+                              "4.1's label), its change s^j_{t+1} - s^j_t (delta: the authors' code), or, implicit "
+                              "only, per factor whichever varies less in the first batch (auto; the explicit model "
+                              "takes changes then); see docs/methods/cbm.md", choices=TARGETS)
     feature_hidden: int = doc(32, "hidden width of each per-(output, input) feature network (as CDL's here)")
     feature_dim: int = doc(32, "size of every per-input feature vector")
     predictor_hidden: int = doc(64, "hidden width of each per-output head (dynamics and reward)")
@@ -68,7 +68,8 @@ class CBMConfig:
         return CDLConfig(feature_hidden=self.feature_hidden, feature_dim=self.feature_dim,
                          predictor_hidden=self.predictor_hidden, lr=self.lr, batch_size=self.batch_size,
                          causal_every=self.causal_every, log_std_min=self.log_std_min,
-                         log_std_max=self.log_std_max, grad_clip=self.grad_clip, cmi_threshold=self.cmi_threshold)
+                         log_std_max=self.log_std_max, grad_clip=self.grad_clip, cmi_threshold=self.cmi_threshold,
+                         target="next" if self.target == "next" else "delta")
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)

@@ -33,6 +33,7 @@ from proto.settings import doc
 
 LOG_2PI = math.log(2 * math.pi)
 TRAIN_PRECISIONS = ("fp32", "bf16")
+TARGETS = ("delta", "next")
 _LOW = {"fp32": None, "bf16": torch.bfloat16}
 __all__ = ["CDLConfig", "CDLModel", "FeatureGroup", "model_config_json", "model_from_config", "model_from_config_json",
            "_MaxAndDropOne", "masked_max", "max_and_runner_up"]  # the last three re-exported (causal.cbm_implicit)
@@ -65,6 +66,10 @@ class CDLConfig:
                                        "aggregation, losses and optimiser stay fp32, and CMI and every "
                                        "evaluation stay fp32; ~4x faster products on CPUs with AVX512-BF16; "
                                        "see docs/deviations.md)", choices=TRAIN_PRECISIONS)
+    target: str = doc("delta", "what a continuous head's Gaussian scores: the factor's change s_{t+1} - s_t "
+                               "(delta: the chapter's and the authors' model) or its next value s_{t+1} (next: "
+                               "CBM's explicit variant under --cbm-target next; see docs/methods/cbm.md)",
+                      choices=TARGETS)
 
     def __post_init__(self) -> None:
         for name in ("lr", "lr_final", "grad_clip"):
@@ -78,6 +83,8 @@ class CDLConfig:
             raise ValueError(f"lr_decay_updates must be >= 0, got {self.lr_decay_updates}")
         if not (math.isfinite(self.cmi_threshold) and self.cmi_threshold >= 0):
             raise ValueError(f"cmi_threshold must be a finite number >= 0, got {self.cmi_threshold}")
+        if self.target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
         if self.train_precision not in TRAIN_PRECISIONS:
             raise ValueError(f"train_precision must be one of {TRAIN_PRECISIONS}, got {self.train_precision!r}")
         if not self.log_std_min < self.log_std_max:
@@ -396,13 +403,15 @@ class CDLModel(nn.Module):
     def _targets(self, state: torch.Tensor,
                  next_state: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """What the heads are scored against, per output and sample: the next class of each
-        categorical output [J_cat, B] and the change of each continuous output [J_cont, B, max_cont]."""
+        categorical output [J_cat, B] and the change (or, with ``cfg.target == "next"``, the next value)
+        of each continuous output [J_cont, B, max_cont]."""
         codec = self.codec
         cat = codec.categories(next_state).T.clamp_max(codec.max_cat - 1) if codec.cat_factors else None
         delta = None
         if codec.cont_factors:
-            current = codec.continuous_values(state).permute(1, 0, 2)
-            delta = codec.continuous_values(next_state).permute(1, 0, 2) - current
+            delta = codec.continuous_values(next_state).permute(1, 0, 2)
+            if self.cfg.target == "delta":
+                delta = delta - codec.continuous_values(state).permute(1, 0, 2)
         return cat, delta
 
     def _nll_of(self, out: torch.Tensor, cat: torch.Tensor | None, delta: torch.Tensor | None) -> torch.Tensor:

@@ -115,9 +115,11 @@ def cdl_outputs(model: CDLModel, state: torch.Tensor, action: torch.Tensor, pare
 
 def next_state_from_outputs(codec: FactorCodec, out: torch.Tensor, state: torch.Tensor, sample: bool = False,
                             generator: torch.Generator | None = None,
-                            log_std_range: tuple[float, float] = (-6.0, 2.0)) -> torch.Tensor:
+                            log_std_range: tuple[float, float] = (-6.0, 2.0), target: str = "delta") -> torch.Tensor:
     """The predicted next flat state from head outputs ``[d_S, B, O]``: the arg-max (or a sample)
-    of each categorical factor, the mean (or a sample) of each continuous one; extra columns copied."""
+    of each categorical factor, the mean (or a sample) of each continuous one, a change added to the
+    state's value (``target`` "delta") or the next value itself ("next", ``CDLConfig.target``); extra
+    columns copied."""
     nxt = state.clone()
     if codec.cat_factors:
         nxt[:, codec.cat_cols] = _categorical_prediction(codec, out, sample, generator).T.to(state.dtype)
@@ -128,7 +130,10 @@ def next_state_from_outputs(codec: FactorCodec, out: torch.Tensor, state: torch.
         if sample:
             log_std = raw[..., m : 2 * m].clamp(*log_std_range)
             change = change + log_std.exp() * torch.randn(change.shape, generator=generator)
-        predicted = state[:, codec.cont_cols] + change.transpose(0, 1) * codec.cont_scale[None, :, None]
+        predicted = change.transpose(0, 1) * codec.cont_scale[None, :, None]
+        # a change is added to the state's value; a next value is in the codec's normalised units
+        base = state[:, codec.cont_cols] if target == "delta" else codec.cont_loc[None, :, None]
+        predicted = predicted + base
         nxt[:, codec.cont_cols[valid]] = predicted[:, valid].to(state.dtype)
     return nxt
 
@@ -150,7 +155,7 @@ def predicted_next_state(model: CDLModel, state: torch.Tensor, action: torch.Ten
     parents = parents.to(torch.bool) | _self_edges(model.layout.num_factors)
     out = cdl_outputs(model, state, action, parents)
     log_std_range = (model.cfg.log_std_min, model.cfg.log_std_max)
-    return next_state_from_outputs(model.codec, out, state, sample, generator, log_std_range)
+    return next_state_from_outputs(model.codec, out, state, sample, generator, log_std_range, model.cfg.target)
 
 
 def cdl_rollout_step(model: CDLModel, parents: torch.Tensor, factors: Sequence[int] | None = None,

@@ -105,3 +105,20 @@ def test_distractor_errors_are_counted_by_the_kinds_they_join() -> None:
     learned[0, 1] = 1  # a scene error: not a distractor's
     assert distractor_errors_by_kind(learned, truth, names) == {
         "cd <- action": 1, "cd <- cd": 1, "scene <- cd": 2, "ud <- scene": 1}
+
+
+def test_the_explicit_variant_takes_the_label_unless_told_otherwise(tmp_path: Path) -> None:
+    """``--target`` is both variants' label; ``--explicit-target delta`` keeps CDL's own model (changes)
+    beside implicit next values, as the explicit rows measured before the option were."""
+    import json
+
+    from benchmarks.cbm_graph_table import main
+
+    small = ["--num-objects", "2", "--distractors", "1,1", "--steps", "120", "--updates", "2", "--estimate-every", "1",
+             "--extra-negatives", "--seeds", "0", "--target", "next"]
+    main([*small, "--variants", "explicit", "--out", str(tmp_path / "same")])
+    main([*small, "--variants", "implicit", "explicit", "--explicit-target", "delta", "--out", str(tmp_path / "cdl")])
+    same = json.loads((tmp_path / "same" / "cbm_table.json").read_text())["rows"]
+    cdl = json.loads((tmp_path / "cdl" / "cbm_table.json").read_text())["rows"]
+    assert [(r["variant"], r["target"]) for r in same] == [("explicit", "next")]
+    assert [(r["variant"], r["target"]) for r in cdl] == [("implicit", "next"), ("explicit", "delta")]

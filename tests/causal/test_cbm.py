@@ -229,3 +229,6 @@ def test_auto_target_takes_next_values_for_overwritten_factors_and_changes_for_p
     assert "dynamics.label_is_next" not in names  # delta and next: the weights of earlier runs still load
     with pytest.raises(ValueError, match="target must be one of"):
         CBMConfig(target="value")
+    # the explicit variant (CDL's model) takes the same label; auto is the implicit model's alone
+    assert [CBMConfig(dynamics="explicit", target=t).cdl().target for t in ("next", "delta", "auto")] == \
+        ["next", "delta", "delta"]

@@ -41,11 +41,13 @@ def toy_batch(rng: np.random.Generator, n: int) -> tuple[torch.Tensor, torch.Ten
     return torch.from_numpy(s), torch.from_numpy(a[:, None].astype(np.float32)), torch.from_numpy(nxt)
 
 
-def test_cdl_recovers_small_graph_exactly() -> None:
+@pytest.mark.parametrize("target", ["delta", "next"])
+def test_cdl_recovers_small_graph_exactly(target: str) -> None:
+    """Both labels (the change, CDL's; the next value, CBM's explicit variant) learn the same graph."""
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     trainer = CDLTrainer(LAYOUT, CDLConfig(feature_hidden=32, feature_dim=32, predictor_hidden=32, lr=3e-3,
-                                           lr_decay_updates=1500), seed=0)
+                                           lr_decay_updates=1500, target=target), seed=0)
     # Batches of 256 and the learning rate decayed to the reference's 1e-4: at a constant 3e-3 the SGD
     # noise of the last iterates leaves spurious CMI of up to 0.02-0.045 nats on some CPUs, seeds or
     # roundings of the same arithmetic (the true edges sit at ~0.65), straddling the paper's 0.02
@@ -454,6 +456,22 @@ def test_train_precision_is_validated_and_travels_with_the_weights() -> None:
     legacy = json.loads(model_config_json(LAYOUT, CDLConfig(feature_hidden=8, feature_dim=8, predictor_hidden=8)))
     del legacy["cdl"]["train_precision"]  # weights published before the option existed
     assert model_from_config_json(json.dumps(legacy)).cfg.train_precision == "fp32"
+
+
+def test_target_next_scores_the_next_value_and_travels_with_the_weights() -> None:
+    with pytest.raises(ValueError, match="target must be one of"):
+        CDLConfig(target="change")
+    small = dict(feature_hidden=8, feature_dim=8, predictor_hidden=8)
+    s, _, nxt = toy_batch(np.random.default_rng(0), 16)
+    by_change, by_value = (CDLModel(LAYOUT, CDLConfig(**small, target=t)) for t in ("delta", "next"))
+    (cat_c, change), (cat_v, value) = by_change._targets(s, nxt), by_value._targets(s, nxt)
+    torch.testing.assert_close(cat_c, cat_v)  # categorical factors are scored by their next class either way
+    torch.testing.assert_close(change[:, :, 0], (nxt - s)[:, :3].T)  # LAYOUT: locations 0, scales 1
+    torch.testing.assert_close(value[:, :, 0], nxt[:, :3].T)
+    assert model_from_config_json(model_config_json(LAYOUT, by_value.cfg)).cfg.target == "next"
+    legacy = json.loads(model_config_json(LAYOUT, by_change.cfg))
+    del legacy["cdl"]["target"]  # weights published before the option existed modelled changes
+    assert model_from_config_json(json.dumps(legacy)).cfg.target == "delta"
 
 
 @pytest.mark.parametrize("dtype,low", [(torch.float64, None), (torch.float32, None), (torch.float32, torch.bfloat16)])

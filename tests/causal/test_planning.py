@@ -89,6 +89,9 @@ def test_next_state_from_outputs_takes_argmax_and_scaled_mean_residual() -> None
     out[2, 0, :4] = torch.tensor([0.0, 5.0, 0.0, 0.0])
     nxt = next_state_from_outputs(codec, out, torch.tensor([[0.0, 3.0, 0.0, 7.0]]))
     torch.testing.assert_close(nxt, torch.tensor([[2.0, 3.5, 1.0, 7.0]]))
+    # a next value (CDLConfig.target "next") is location + scale x mean, whatever the state holds
+    as_value = next_state_from_outputs(codec, out, torch.tensor([[0.0, 3.0, 0.0, 7.0]]), target="next")
+    torch.testing.assert_close(as_value, torch.tensor([[2.0, 1.5, 1.0, 7.0]]))
     sampled = next_state_from_outputs(codec, out.expand(-1, 200, -1), torch.zeros(200, 4), sample=True,
                                       generator=torch.Generator().manual_seed(0))
     assert sampled[:, 0].max() <= 2 and sampled[:, 1].std() > 0
