@@ -423,6 +423,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="updates between CMI estimates (averaged, and the causal term's parents)")
     p.add_argument("--ema", type=float, default=0.999, help="moving-average weight per update (the evaluator's)")
     p.add_argument("--lr", type=float, default=CBMConfig.lr)
+    p.add_argument("--l2", type=float, default=CBMConfig.score_l2,
+                   help="lambda1 = lambda2 of eq. 4.5 (the implicit model's penalties on scores and their "
+                        "gradients; the reference's 1e-6)")
     p.add_argument("--target", choices=TARGETS, default=CBMConfig.target,
                    help="implicit dynamics' candidates: each factor's change (the authors' code), its next value "
                         "(eq. 4.1's label) or per factor the one that varies less (auto); CBMConfig.target. "
@@ -448,6 +451,10 @@ def main(argv: list[str] | None = None) -> None:
         (args.out / "cbm_table.json").write_text(json.dumps(merged, indent=1))
         print(table(merged["rows"]))
         return
+    try:  # settings the models would refuse, refused before minutes of collection
+        CBMConfig(lr=args.lr, target=args.target, score_l2=args.l2, grad_l2=args.l2)
+    except ValueError as error:
+        p.error(str(error))
     if args.grasp != "mov1" and args.env != "block":
         p.error("--grasp applies to --env block only")
     if args.velocities and args.env not in ("block", "tool-use"):
@@ -480,7 +487,7 @@ def main(argv: list[str] | None = None) -> None:
         results = {}
         for variant in args.variants:
             target = args.explicit_target if variant == "explicit" and args.explicit_target else args.target
-            cfg = CBMConfig(dynamics=variant, lr=args.lr, target=target)
+            cfg = CBMConfig(dynamics=variant, lr=args.lr, target=target, score_l2=args.l2, grad_l2=args.l2)
             trained = train(spec, cfg, data, args.updates, args.estimate_every, args.ema, seed)
             results[variant] = evaluate(trained, spec, data, seed, tuple(args.extra_negatives))
             rows.append({"variant": variant, "seed": seed, "target": target,

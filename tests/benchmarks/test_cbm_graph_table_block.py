@@ -122,3 +122,14 @@ def test_the_explicit_variant_takes_the_label_unless_told_otherwise(tmp_path: Pa
     cdl = json.loads((tmp_path / "cdl" / "cbm_table.json").read_text())["rows"]
     assert [(r["variant"], r["target"]) for r in same] == [("explicit", "next")]
     assert [(r["variant"], r["target"]) for r in cdl] == [("implicit", "next"), ("explicit", "delta")]
+
+
+def test_settings_the_model_would_refuse_are_refused_before_collection(tmp_path: Path) -> None:
+    import pytest
+
+    from benchmarks.cbm_graph_table import main
+
+    for bad in (["--l2", "-1"], ["--lr", "nan"]):
+        with pytest.raises(SystemExit):
+            main(["--env", "block", "--steps", "10000", *bad, "--out", str(tmp_path)])
+    assert not (tmp_path / "cbm_table.json").exists()
