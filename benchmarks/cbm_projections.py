@@ -73,7 +73,8 @@ def scores(cmi: np.ndarray, k: int, threshold: float, uncontrollable: int = 0, s
     out = {"cd_cd_edges": int((between >= threshold).sum()), "of": int(between.size),
            "cd_cd_median": float(np.median(between)), "cd_cd_max": float(between.max()),
            "self_mean": float(np.diag(cmi[:k, :k]).mean()), "action_mean": float(cmi[:k, -1].mean())}
-    for name, rows in (("ud", range(k, k + uncontrollable)), ("static", range(k + uncontrollable, k + uncontrollable + static))):
+    first_static = k + uncontrollable
+    for name, rows in (("ud", range(k, first_static)), ("static", range(first_static, first_static + static))):
         if len(rows):
             others = np.concatenate([np.delete(cmi[j], j) for j in rows])
             out |= {f"{name}_edges": int((others >= threshold).sum()), f"{name}_of": int(others.size),

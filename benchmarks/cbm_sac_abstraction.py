@@ -114,7 +114,7 @@ def abstractions_from_training(env_kwargs: dict[str, Any], steps: int, updates: 
     kept = {}
     for variant in ("implicit", "explicit"):
         # CDL's abstraction comes from CDL's own model, which models changes; CBM's takes its default label
-        cfg = CBMConfig(dynamics=variant) if variant == "implicit" else CBMConfig(dynamics=variant, target="delta")
+        cfg = CBMConfig(dynamics=variant, target=CBMConfig.target if variant == "implicit" else "delta")
         trained = train(spec, cfg, data, updates, min(estimate_every, updates), 0.999, seed)
         kept[variant] = evaluate(trained, spec, data, seed, ())["kept"]
     return conditions_from_kept(kept["implicit"], kept["explicit"], spec.factor_names)
