@@ -28,7 +28,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -42,13 +42,15 @@ fit's noise over a near-zero remainder."""
 
 def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray, first: np.ndarray, *,
                    hidden: int = 128, updates: int = 4000, batch: int = 256, lr: float = 1e-3,
-                   heldout_share: float = 0.2, seed: int = 0) -> dict[str, Any]:
+                   heldout_share: float = 0.2, seed: int = 0,
+                   progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Held-out R^2 of each factor's change from ``(s_t, a_t)`` and from ``(s_t, a_t, a_{t-1})``.
 
     ``state``, ``next_state`` are ``[T, d]``, ``action`` ``[T, m]``, ``first`` ``[T]`` marks the first
     step of each episode (it has no previous action and is left out). Rows are split at random (seeded)
     into fitted and held out. Returns ``r2``, ``r2_prev``, ``gain`` (lists over factors, ``None`` where
-    ``constant``; ``gain`` also where ``R^2 > 1 -`` :data:`NOTHING_LEFT`), ``constant`` and the row counts."""
+    ``constant``; ``gain`` also where ``R^2 > 1 -`` :data:`NOTHING_LEFT`), ``constant`` and the row counts.
+    ``progress``, if given, receives a line per tenth of each fit's updates."""
     state, next_state = np.asarray(state, np.float64), np.asarray(next_state, np.float64)
     action, first = np.asarray(action, np.float64), np.asarray(first, bool)
     if not (len(state) == len(action) == len(next_state) == len(first)):
@@ -74,8 +76,10 @@ def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray
 
     base = np.concatenate([standardised(state), standardised(action)], axis=1)
     with_previous = np.concatenate([base, standardised(previous)], axis=1)
-    residual = {name: _fit(x, target, fit_rows, test_rows, hidden, updates, batch, lr, seed)
-                for name, x in (("r2", base), ("r2_prev", with_previous))}
+    residual = {}
+    for name, x in (("r2", base), ("r2_prev", with_previous)):
+        report = None if progress is None else (lambda done, name=name: progress(f"fit {name}: {done}/{updates} updates"))
+        residual[name] = _fit(x, target, fit_rows, test_rows, hidden, updates, batch, lr, seed, report)
     variance = target[test_rows].var(axis=0)
     out: dict[str, Any] = {"constant": constant.tolist(), "fitted_rows": int(len(fit_rows)),
                            "heldout_rows": int(len(test_rows))}
@@ -87,8 +91,10 @@ def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray
 
 
 def _fit(x: np.ndarray, y: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarray, hidden: int,
-         updates: int, batch: int, lr: float, seed: int) -> np.ndarray:
-    """Held-out squared error per output of a two-hidden-layer MLP fitted by Adam on ``fit_rows``."""
+         updates: int, batch: int, lr: float, seed: int,
+         report: Callable[[int], None] | None = None) -> np.ndarray:
+    """Held-out squared error per output of a two-hidden-layer MLP fitted by Adam on ``fit_rows``;
+    ``report(done)`` after each tenth of the updates."""
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     xt, yt = torch.as_tensor(x, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
@@ -96,12 +102,15 @@ def _fit(x: np.ndarray, y: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarr
                               torch.nn.Linear(hidden, hidden), torch.nn.ReLU(), torch.nn.Linear(hidden, y.shape[1]))
     optimiser = torch.optim.Adam(net.parameters(), lr=lr)
     fit_x, fit_y = xt[fit_rows], yt[fit_rows]
-    for _ in range(updates):
+    every = max(1, updates // 10)
+    for done in range(1, updates + 1):
         pick = torch.randint(len(fit_rows), (min(batch, len(fit_rows)),), generator=generator)
         loss = (net(fit_x[pick]) - fit_y[pick]).pow(2).mean()
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
+        if report is not None and (done % every == 0 or done == updates):
+            report(done)
     with torch.no_grad():
         return (net(xt[test_rows]) - yt[test_rows]).pow(2).mean(dim=0).numpy()
 
@@ -182,7 +191,8 @@ def main(argv: list[str] | None = None) -> None:
         env_kwargs["velocities"] = True
     names, data = collect_episodes(args.env, env_kwargs, args.steps, args.seed)
     result = predictability(data["state"], data["action"], data["next_state"], data["first"],
-                            updates=args.updates, seed=args.seed)
+                            updates=args.updates, seed=args.seed,
+                            progress=lambda line: print(line, file=sys.stderr, flush=True))
     title = (f"{args.env}, {args.steps} steps, seed {args.seed}" + (f", {args.control_freq} Hz" if args.control_freq else "")
              + (", velocity factors" if args.velocities else ""))
     (args.out / "markov.json").write_text(json.dumps({"args": vars(args) | {"out": str(args.out)},

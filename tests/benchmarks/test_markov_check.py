@@ -47,6 +47,15 @@ def test_a_markov_state_shows_no_gain():
     assert lines[-1] == "| c | constant | constant | - |"
 
 
+def test_progress_reports_each_tenth_of_each_fit_and_changes_nothing():
+    data = _rollout(observe_velocity=True, steps=300)
+    lines: list[str] = []
+    quiet = predictability(*data, updates=50, hidden=16, seed=0)
+    loud = predictability(*data, updates=50, hidden=16, seed=0, progress=lines.append)
+    assert lines == [f"fit {name}: {done}/50 updates" for name in ("r2", "r2_prev") for done in range(5, 51, 5)]
+    assert loud == quiet
+
+
 def test_bad_input_is_refused():
     s, a, n, f = _rollout(observe_velocity=True, steps=200)
     with pytest.raises(ValueError, match="same number of rows"):
