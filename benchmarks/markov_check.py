@@ -78,7 +78,8 @@ def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray
     with_previous = np.concatenate([base, standardised(previous)], axis=1)
     residual = {}
     for name, x in (("r2", base), ("r2_prev", with_previous)):
-        report = None if progress is None else (lambda done, name=name: progress(f"fit {name}: {done}/{updates} updates"))
+        report = (None if progress is None
+                  else lambda done, name=name: progress(f"fit {name}: {done}/{updates} updates"))
         residual[name] = _fit(x, target, fit_rows, test_rows, hidden, updates, batch, lr, seed, report)
     variance = target[test_rows].var(axis=0)
     out: dict[str, Any] = {"constant": constant.tolist(), "fitted_rows": int(len(fit_rows)),
