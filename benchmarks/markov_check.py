@@ -76,11 +76,8 @@ def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray
 
     base = np.concatenate([standardised(state), standardised(action)], axis=1)
     with_previous = np.concatenate([base, standardised(previous)], axis=1)
-    residual = {}
-    for name, x in (("r2", base), ("r2_prev", with_previous)):
-        report = (None if progress is None
-                  else lambda done, name=name: progress(f"fit {name}: {done}/{updates} updates"))
-        residual[name] = _fit(x, target, fit_rows, test_rows, hidden, updates, batch, lr, seed, report)
+    residual = {name: _fit(x, target, fit_rows, test_rows, hidden, updates, batch, lr, seed, progress, f"fit {name}")
+                for name, x in (("r2", base), ("r2_prev", with_previous))}
     variance = target[test_rows].var(axis=0)
     out: dict[str, Any] = {"constant": constant.tolist(), "fitted_rows": int(len(fit_rows)),
                            "heldout_rows": int(len(test_rows))}
@@ -93,9 +90,9 @@ def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray
 
 def _fit(x: np.ndarray, y: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarray, hidden: int,
          updates: int, batch: int, lr: float, seed: int,
-         report: Callable[[int], None] | None = None) -> np.ndarray:
+         progress: Callable[[str], None] | None = None, label: str = "fit") -> np.ndarray:
     """Held-out squared error per output of a two-hidden-layer MLP fitted by Adam on ``fit_rows``;
-    ``report(done)`` after each tenth of the updates."""
+    ``progress("<label>: <done>/<updates> updates")`` after each tenth of the updates."""
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     xt, yt = torch.as_tensor(x, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
@@ -110,8 +107,8 @@ def _fit(x: np.ndarray, y: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarr
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
-        if report is not None and (done % every == 0 or done == updates):
-            report(done)
+        if progress is not None and (done % every == 0 or done == updates):
+            progress(f"{label}: {done}/{updates} updates")
     with torch.no_grad():
         return (net(xt[test_rows]) - yt[test_rows]).pow(2).mean(dim=0).numpy()
 
