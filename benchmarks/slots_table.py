@@ -60,6 +60,20 @@ class Budget:
     ae_updates: int = 300
     slot_updates: int = 1500
     log_every: int = 250
+    num_slots: int = 0
+    """K; 0: one per object and one for the background. The chapter's K is far above the object count
+    (31 or 47 slots on Procgen), and unused slots stay free; without a prior, slot attention then splits
+    objects over several slots, the failure the chapter's mask prior is for."""
+
+    def __post_init__(self) -> None:
+        if self.num_slots and self.num_slots < self.num_objects + 1:
+            raise ValueError(f"--num-slots {self.num_slots} < {self.num_objects + 1}: one slot per object and "
+                             "one for the background at least")
+
+    @property
+    def slots(self) -> int:
+        """K as trained: ``num_slots``, or ``num_objects + 1`` where it is 0."""
+        return self.num_slots or self.num_objects + 1
 
 
 def frames_of(env: ChemicalPixelsEnv, seed: int, count: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -109,7 +123,7 @@ def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: di
     """Slot attention and decoder trained with mask prior ``variant`` (masks per token by ``token_mask``,
     :func:`causal.slots.token_masks`); the model and its training record."""
     torch.manual_seed(seed)
-    config = SlotConfig(num_slots=budget.num_objects + 1, mask_prior=variant, token_mask=token_mask,
+    config = SlotConfig(num_slots=budget.slots, mask_prior=variant, token_mask=token_mask,
                         mask_assignment=mask_assignment)
     model = SlotModel(config, budget.frame_size)
     model.autoencoder.load_state_dict(autoencoder_state)
@@ -134,10 +148,11 @@ def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] =
     source = frame_source(env, budget)
     train = source(seed, budget.train_frames)
     test = source(seed + EVAL_SEED_OFFSET, budget.eval_frames)
-    base = SlotModel(SlotConfig(num_slots=budget.num_objects + 1), budget.frame_size)
+    base = SlotModel(SlotConfig(num_slots=budget.slots), budget.frame_size)
     started = time.perf_counter()
     ae_loss = fit_autoencoder(base.autoencoder, train[0], budget.ae_updates, seed=seed)
     out: dict[str, Any] = {"seed": seed, "env": env, "token_mask": token_mask, "mask_assignment": mask_assignment,
+                           "num_slots": budget.slots,
                            "autoencoder": {"final_mse": ae_loss, "seconds": time.perf_counter() - started}}
     for variant in variants:
         model, record = train_variant(variant, seed, budget, base.autoencoder.state_dict(), train, token_mask,

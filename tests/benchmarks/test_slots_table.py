@@ -32,3 +32,19 @@ def test_slots_table_on_the_sprite_game(tmp_path: Path, capsys: pytest.CaptureFi
         assert -1.0 <= result[variant]["slots"]["fg_ari"] <= 1.0
     with pytest.raises(ValueError, match="num-objects"):
         main(["--env", "sprites", "--num-objects", "1", "--out", str(tmp_path / "bad.json")])
+
+
+def test_more_slots_than_segments_leaves_the_spare_slots_free(tmp_path: Path) -> None:
+    """``--num-slots`` above the segments (the chapter's K): every variant trains and scores, matched
+    masks included; a K below one per object and the background fails before any frame is made."""
+    out = tmp_path / "table.json"
+    main(["--seeds", "0", "--num-objects", "2", "--num-slots", "6", "--frame-size", "16", "--train-frames", "16",
+          "--eval-frames", "8", "--ae-updates", "1", "--slot-updates", "3", "--mask-assignment", "matched",
+          "--out", str(out)])
+    result = json.loads(out.read_text())["results"][0]
+    assert result["num_slots"] == 6
+    for variant in VARIANTS:
+        assert -1.0 <= result[variant]["slots"]["fg_ari"] <= 1.0
+    with pytest.raises(ValueError, match="num-slots 2 < 3"):
+        main(["--num-objects", "2", "--num-slots", "2", "--out", str(tmp_path / "bad.json")])
+    assert not (tmp_path / "bad.json").exists()

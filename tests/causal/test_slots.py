@@ -39,6 +39,20 @@ def test_drop_probability_follows_the_log_schedule() -> None:
     assert all(b >= a for a, b in zip(values, values[1:]))
 
 
+def test_spare_slots_take_nothing_under_the_masks() -> None:
+    """K above the segments (the chapter's 31 or 47 slots): the spare slots have no token under the
+    mask prior, so slot attention gives them no attention at all; without masks they compete."""
+    frames, labels = _frames(4)
+    config = dataclasses.replace(SMALL, num_slots=8)
+    allowed = token_masks(labels, config.num_slots)
+    assert not allowed[:, 5:].any() and allowed.any(dim=1).all()
+    torch.manual_seed(0)
+    model = SlotModel(config, frame_size=16)
+    masked = model(frames, allowed).attention
+    assert masked[:, 5:].abs().max() == 0.0
+    assert torch.allclose(masked.sum(dim=1), torch.ones(4, masked.shape[2]), rtol=1e-6, atol=1e-6)
+    assert model(frames).attention[:, 5:].amin() > 0.0
+
 def test_token_masks_cover_every_token_and_mark_each_segment() -> None:
     labels = torch.zeros(1, 8, 8, dtype=torch.long)
     labels[0, :4, :4] = 1
