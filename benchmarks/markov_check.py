@@ -13,7 +13,12 @@ fitted to every factor's change ``s_{t+1} - s_t`` (standardised): one from ``(s_
 ``(s_t, a_t, a_{t-1})``, on the steps that have a previous action in their episode; held-out R^2 per
 factor for both, and ``gain = (R^2_prev - R^2) / (1 - R^2)``, the share of the unexplained variance
 the previous action explains (near 0 on a Markov env; the fit's own noise puts a few hundredths
-there). Factors whose change is constant on the training rows (a cube nothing touched) are marked
+there). ``nats`` is the same comparison on the scale of a CMI edge: ``0.5 ln(MSE / MSE_prev)`` of the
+held-out errors, the conditional mutual information a Gaussian residual would give (negative where
+the fit with ``a_{t-1}`` does worse: the fit's noise). Where ``(s_t, a_t)`` explain nearly everything,
+a gain too small for R^2 to show is large in nats (R^2 0.995 -> 0.996 is 0.11 nats, five times
+CBM's 0.02-nat edge threshold), so this column says whether the check can resolve what a threshold
+counts as an edge. Factors whose change is constant on the training rows (a cube nothing touched) are marked
 ``constant`` instead. Writes ``<out>/markov.json`` and ``<out>/markov.png`` (R^2 per factor, without
 and with the previous action); prints a table.
 
@@ -85,6 +90,8 @@ def predictability(state: np.ndarray, action: np.ndarray, next_state: np.ndarray
         out[name] = [None if c or v <= 0 else float(1.0 - m / v) for c, m, v in zip(constant, mse, variance)]
     out["gain"] = [None if a is None or b is None or 1.0 - a < NOTHING_LEFT else float((b - a) / (1.0 - a))
                    for a, b in zip(out["r2"], out["r2_prev"])]
+    out["nats"] = [None if c or v <= 0 or m <= 0 or mp <= 0 else float(0.5 * np.log(m / mp))
+                   for c, m, mp, v in zip(constant, residual["r2"], residual["r2_prev"], variance)]
     return out
 
 
@@ -130,13 +137,15 @@ def table(names: tuple[str, ...], result: dict[str, Any]) -> str:
     def cell(value: float | None) -> str:
         return "-" if value is None else f"{value:.3f}"
 
-    lines = ["| factor | R^2 from (s_t, a_t) | R^2 with a_{t-1} | share of the rest a_{t-1} explains |",
-             "|---|---|---|---|"]
+    lines = ["| factor | R^2 from (s_t, a_t) | R^2 with a_{t-1} | share of the rest a_{t-1} explains | in nats |",
+             "|---|---|---|---|---|"]
+    nats = result.get("nats", [None] * len(names))  # files written before the column have none
     for i, name in enumerate(names):
         if result["constant"][i]:
-            lines.append(f"| {name} | constant | constant | - |")
+            lines.append(f"| {name} | constant | constant | - | - |")
         else:
-            lines.append(f"| {name} | {cell(result['r2'][i])} | {cell(result['r2_prev'][i])} | {cell(result['gain'][i])} |")
+            lines.append(f"| {name} | {cell(result['r2'][i])} | {cell(result['r2_prev'][i])} | {cell(result['gain'][i])} "
+                         f"| {'-' if nats[i] is None else f'{nats[i]:+.3f}'} |")
     return "\n".join(lines)
 
 

@@ -36,6 +36,9 @@ def test_a_hidden_velocity_shows_as_the_previous_actions_gain():
     assert result["gain"][0] > 0.7
     assert result["constant"] == [False, True]
     assert result["r2"][1] is None and result["gain"][1] is None
+    # in nats: 0.5 ln((1 - R^2) / (1 - R^2_prev)) of the standardised change, i.e. -0.5 ln(1 - gain)
+    assert result["nats"][0] == pytest.approx(-0.5 * np.log(1.0 - result["gain"][0]), rel=1e-3)
+    assert result["nats"][0] > 0.6 and result["nats"][1] is None
 
 
 def test_a_markov_state_shows_no_gain():
@@ -43,8 +46,12 @@ def test_a_markov_state_shows_no_gain():
     assert result["r2"][0] > 0.97 and result["r2"][1] > 0.97
     assert abs(result["r2_prev"][0] - result["r2"][0]) < 0.02 and abs(result["r2_prev"][1] - result["r2"][1]) < 0.02
     assert result["gain"][0] is None or abs(result["gain"][0]) < 0.5
+    assert all(n is not None and abs(n) < 0.5 for n in result["nats"][:2])
     lines = table(("x", "v", "c"), result).splitlines()
-    assert lines[-1] == "| c | constant | constant | - |"
+    assert lines[-1] == "| c | constant | constant | - | - |"
+    assert lines[2].endswith(f"| {result['nats'][0]:+.3f} |")
+    del result["nats"]  # a file written before the column: the table still prints
+    assert table(("x", "v", "c"), result).splitlines()[2].endswith("| - |")
 
 
 def test_progress_reports_each_tenth_of_each_fit_and_changes_nothing():
