@@ -62,8 +62,9 @@ class Budget:
     log_every: int = 250
     num_slots: int = 0
     """K; 0: one per object and one for the background. The chapter's K is far above the object count
-    (31 or 47 slots on Procgen), and unused slots stay free; without a prior, slot attention then splits
-    objects over several slots, the failure the chapter's mask prior is for."""
+    (31 or 47 slots on Procgen; unused slots stay free), and the failure it names for unsupervised slots,
+    one object split over several, needs spare slots to happen (on the sprite game at 32x32 it did not:
+    docs/results.md, "On the sprite game")."""
 
     def __post_init__(self) -> None:
         if self.num_slots and self.num_slots < self.num_objects + 1:

@@ -53,6 +53,7 @@ def test_spare_slots_take_nothing_under_the_masks() -> None:
     assert torch.allclose(masked.sum(dim=1), torch.ones(4, masked.shape[2]), rtol=1e-6, atol=1e-6)
     assert model(frames).attention[:, 5:].amin() > 0.0
 
+
 def test_token_masks_cover_every_token_and_mark_each_segment() -> None:
     labels = torch.zeros(1, 8, 8, dtype=torch.long)
     labels[0, :4, :4] = 1
