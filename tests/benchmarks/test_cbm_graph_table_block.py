@@ -133,3 +133,50 @@ def test_settings_the_model_would_refuse_are_refused_before_collection(tmp_path:
         with pytest.raises(SystemExit):
             main(["--env", "block", "--steps", "10000", *bad, "--out", str(tmp_path)])
     assert not (tmp_path / "cbm_table.json").exists()
+
+
+def test_the_fdr_rule_keeps_only_edges_shown_above_the_threshold() -> None:
+    """``--fdr``: on one estimate, an entry estimated over 0.02 nats but within its noise of it is an
+    edge by the fixed threshold only; one far above it by both; the abstraction follows the graph."""
+    import numpy as np
+
+    from benchmarks.cbm_graph_table import fdr_scores
+    from causal.edge_tests import EdgeEstimate
+    from envs.registry import make_env
+
+    spec = make_env("chemical-distractors", num_objects=2, distractors="1,1", task="match").env_spec()
+    names = list(spec.factor_names)
+    cmi = np.zeros(spec.global_graph.shape)
+    stderr = np.full(cmi.shape, 1e-3)
+    truth = spec.global_graph.astype(bool) & ~np.eye(*cmi.shape, dtype=bool)
+    cmi[truth] = 0.3                                   # every true edge, far above the threshold
+    noisy = (names.index("obj0.color"), names.index("cd.0"))  # obj0.color is a reward parent
+    cmi[noisy], stderr[noisy] = 0.03, 0.02            # over 0.02 nats, but half a standard error over it
+    result = fdr_scores(EdgeEstimate(cmi, stderr, 1000), spec.reward_parents, spec, 0.02, 0.05, 0.02)
+    assert result["fixed_threshold_edges"] == int(truth.sum()) + 1
+    assert result["edges"] == int(truth.sum())
+    assert result["graph"]["accuracy"] == 1.0 and result["fixed_threshold_graph"]["accuracy"] < 1.0
+    assert result["abstraction_accuracy_true_reward"] == 1.0
+    assert result["fixed_threshold_abstraction_accuracy_true_reward"] < 1.0   # the spurious edge keeps cd.0
+
+
+def test_fdr_graphs_are_subsets_of_the_thresholds_on_the_same_estimate(tmp_path: Path) -> None:
+    import json
+
+    import pytest
+
+    from benchmarks.cbm_graph_table import main
+
+    main(["--num-objects", "2", "--distractors", "1,1", "--steps", "600", "--updates", "2", "--estimate-every", "1",
+          "--extra-negatives", "--seeds", "0", "--fdr", "0.05", "--out", str(tmp_path / "run")])
+    rows = json.loads((tmp_path / "run" / "cbm_table.json").read_text())["rows"]
+    assert [r["variant"] for r in rows] == ["implicit", "explicit"]
+    for row in rows:
+        fdr = row["fdr"]
+        assert fdr["min_cmi"] == 0.02 and fdr["samples"] > 0
+        assert fdr["edges"] <= fdr["fixed_threshold_edges"]   # CMI > 0.02 shown implies CMI > 0.02
+        assert 0.0 <= fdr["abstraction_accuracy_true_reward"] <= 1.0
+    for bad in (["--fdr", "1.5"], ["--fdr", "0.05", "--fdr-min-cmi", "-1"]):
+        with pytest.raises(SystemExit):
+            main(["--env", "block", "--steps", "10000", *bad, "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad" / "cbm_table.json").exists()
