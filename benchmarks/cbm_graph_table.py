@@ -336,9 +336,10 @@ def abstraction_scores(adjacency: np.ndarray, reward_parents: np.ndarray, spec: 
 
 def final_estimate(trained: Trained, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
                    seed: int) -> EdgeEstimate:
-    """The final model's dynamics CMI on every given transition, with standard errors over them (the
-    method's own estimate, :class:`causal.methods.cbm.DynamicsCMI`, which subsamples for the live
-    evaluator, here on all of them; the implicit model's negatives held fixed)."""
+    """The final model's dynamics CMI on every given transition, with standard errors over them: the
+    estimate of :class:`causal.methods.cbm.DynamicsCMI` (the live evaluator's), except that for the
+    implicit model it takes every transition where the evaluator draws ``cmi_samples`` of them (the
+    negatives held fixed, as there)."""
     model = trained.trainer.model
     if not model.implicit:
         return DynamicsCMI(seed).estimate(model, state, action, next_state)
@@ -510,6 +511,8 @@ def main(argv: list[str] | None = None) -> None:
         p.error(str(error))
     if not 0.0 <= args.fdr < 1.0 or (args.fdr_min_cmi is not None and not args.fdr_min_cmi >= 0.0):
         p.error(f"--fdr must be in [0, 1) and --fdr-min-cmi >= 0, got {args.fdr}, {args.fdr_min_cmi}")
+    if args.fdr and args.reward_only:
+        p.error("--fdr decides the dynamics graph, which --reward-only does not train")
     if args.grasp != "mov1" and args.env != "block":
         p.error("--grasp applies to --env block only")
     if args.velocities and args.env not in ("block", "tool-use"):

@@ -176,7 +176,7 @@ def test_fdr_graphs_are_subsets_of_the_thresholds_on_the_same_estimate(tmp_path:
         assert fdr["min_cmi"] == 0.02 and fdr["samples"] > 0
         assert fdr["edges"] <= fdr["fixed_threshold_edges"]   # CMI > 0.02 shown implies CMI > 0.02
         assert 0.0 <= fdr["abstraction_accuracy_true_reward"] <= 1.0
-    for bad in (["--fdr", "1.5"], ["--fdr", "0.05", "--fdr-min-cmi", "-1"]):
+    for bad in (["--fdr", "1.5"], ["--fdr", "0.05", "--fdr-min-cmi", "-1"], ["--fdr", "0.05", "--reward-only"]):
         with pytest.raises(SystemExit):
             main(["--env", "block", "--steps", "10000", *bad, "--out", str(tmp_path / "bad")])
     assert not (tmp_path / "bad" / "cbm_table.json").exists()
