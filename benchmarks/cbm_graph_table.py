@@ -336,16 +336,10 @@ def abstraction_scores(adjacency: np.ndarray, reward_parents: np.ndarray, spec: 
 
 def final_estimate(trained: Trained, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
                    seed: int) -> EdgeEstimate:
-    """The final model's dynamics CMI on every given transition, with standard errors over them: the
-    estimate of :class:`causal.methods.cbm.DynamicsCMI` (the live evaluator's), except that for the
-    implicit model it takes every transition where the evaluator draws ``cmi_samples`` of them (the
-    negatives held fixed, as there)."""
-    model = trained.trainer.model
-    if not model.implicit:
-        return DynamicsCMI(seed).estimate(model, state, action, next_state)
-    total, squares = model.dynamics.cmi_sums(state, action, next_state, model.cfg.eval_negatives,
-                                             torch.Generator().manual_seed(seed))
-    return EdgeEstimate.from_sums(total.numpy(), squares.numpy(), state.shape[0])
+    """The final model's dynamics CMI on every given transition, with standard errors over them: the live
+    evaluator's estimate (:class:`causal.methods.cbm.DynamicsCMI`), on all of them where the evaluator
+    draws ``cmi_samples`` for the implicit model."""
+    return DynamicsCMI(seed).estimate(trained.trainer.model, state, action, next_state, max_samples=state.shape[0])
 
 
 def fdr_scores(estimate: EdgeEstimate, reward_parents: np.ndarray, spec: EnvSpec, threshold: float, fdr: float,
@@ -452,6 +446,20 @@ def merge_tables(paths: list[Path]) -> dict[str, Any]:
     return {"args": [t["args"] for t in tables], "factor_names": names, "rows": rows}
 
 
+def scene_kwargs(env: str, distractors: str, task: str, graph: str = "full", num_objects: int = 3,
+                 episode_length: int = 0, velocities: bool = False) -> dict[str, Any]:
+    """The keyword arguments of ``make_env(env, ...)`` for these settings (a table's ``args`` name them):
+    ``graph`` and ``num_objects`` on Chemical only, ``episode_length`` 0 for the env's own."""
+    kwargs: dict[str, Any] = dict(distractors=distractors, task=task)
+    if env == "chemical-distractors":
+        kwargs |= dict(graph=graph, num_objects=num_objects)
+    if episode_length:
+        kwargs["episode_length"] = episode_length
+    if velocities:
+        kwargs["velocities"] = True
+    return kwargs
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="chemical-distractors", choices=("chemical-distractors", "block", "tool-use", "dmc-walker", "dmc-cheetah"))
@@ -518,13 +526,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.velocities and args.env not in ("block", "tool-use"):
         p.error("--velocities applies to --env block and tool-use only")
     grasp_targets = BLOCK_CUBES if args.grasp == "all" else ("mov1",)
-    env_kwargs: dict[str, Any] = dict(distractors=args.distractors, task=args.task)
-    if args.env == "chemical-distractors":
-        env_kwargs |= dict(graph=args.graph, num_objects=args.num_objects)
-    if args.episode_length:
-        env_kwargs["episode_length"] = args.episode_length
-    if args.velocities:
-        env_kwargs["velocities"] = True
+    env_kwargs = scene_kwargs(args.env, args.distractors, args.task, args.graph, args.num_objects,
+                              args.episode_length, args.velocities)
     rows: list[dict[str, Any]] = []
     if args.reward_only:
         cfg = CBMConfig(lr=args.lr)

@@ -21,23 +21,25 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.cbm_graph_table import BLOCK_CUBES, collect, non_distractor_entries
+from benchmarks.cbm_graph_table import BLOCK_CUBES, collect, non_distractor_entries, scene_kwargs
 from causal.abstraction import with_self_edges
+from causal.cbm_config import CBMConfig
+from causal.graph_metrics import confusion
 from envs.registry import make_env
 from proto.messages import EnvSpec
 
-THRESHOLD = 0.02  # chapter 4's dynamics edge threshold, as cbm_graph_table scores it
+THRESHOLD = CBMConfig.cmi_threshold  # chapter 4's dynamics edge threshold, as cbm_graph_table scores it
 
 
 def scene_scores(cmi: np.ndarray, truth: np.ndarray, names: tuple[str, ...], threshold: float = THRESHOLD
                  ) -> dict[str, float | int]:
     """True / false positives, false negatives, precision and recall of ``cmi >= threshold`` (self edges
     added, as the benchmark does) on the non-distractor off-diagonal entries."""
-    learned, truth = with_self_edges(np.asarray(cmi) >= threshold).astype(bool), np.asarray(truth, bool)
+    learned, truth = with_self_edges(np.asarray(cmi) >= threshold), np.asarray(truth, bool)
     mask = non_distractor_entries(names)
-    tp, fp, fn = (int((a & b & mask).sum()) for a, b in ((learned, truth), (learned, ~truth), (~learned, truth)))
-    return {"true": int((truth & mask).sum()), "tp": tp, "fp": fp, "fn": fn,
-            "precision": tp / max(tp + fp, 1), "recall": tp / max(tp + fn, 1)}
+    c = confusion(learned, truth, mask)
+    return {"true": int((truth & mask).sum()), "tp": c["tp"], "fp": c["fp"], "fn": c["fn"],
+            "precision": c["tp"] / max(c["tp"] + c["fp"], 1), "recall": c["tp"] / max(c["tp"] + c["fn"], 1)}
 
 
 def edges_only_in(cmi: np.ndarray, other: np.ndarray, names: tuple[str, ...], threshold: float = THRESHOLD
@@ -58,13 +60,11 @@ def moved_share(data: dict[str, np.ndarray], names: tuple[str, ...], bodies: tup
 
 
 def _table_spec(args: dict[str, Any], cache: dict[tuple, EnvSpec]) -> EnvSpec:
-    key = (args["env"], args["task"], args["distractors"], bool(args.get("velocities")))
+    key = (args["env"], args["task"], args["distractors"], args["graph"], args["num_objects"],
+           bool(args.get("velocities")))
     if key not in cache:
-        kwargs: dict[str, Any] = dict(distractors=args["distractors"], task=args["task"])
-        if args["env"] == "chemical-distractors":
-            kwargs |= dict(graph=args["graph"], num_objects=args["num_objects"])
-        if args.get("velocities"):
-            kwargs["velocities"] = True
+        kwargs = scene_kwargs(args["env"], args["distractors"], args["task"], args["graph"], args["num_objects"],
+                              velocities=bool(args.get("velocities")))
         env = make_env(args["env"], **kwargs).unwrapped
         cache[key] = env.env_spec()
         env.close()
@@ -102,8 +102,8 @@ def main(argv: list[str] | None = None) -> None:
         for label, x, y in (("only in A", a, b), ("only in B", b, a)):
             print(f"{label}: {', '.join(edges_only_in(x, y, names)) or '-'}")
     for length in args.episode_lengths if args.moves else ():
-        kwargs: dict[str, Any] = dict(distractors="20,20", task="pick") | ({"episode_length": length} if length else {})
-        spec, data = collect(kwargs, args.moves, args.seed, "block", BLOCK_CUBES)
+        spec, data = collect(scene_kwargs("block", "20,20", "pick", episode_length=length), args.moves, args.seed,
+                             "block", BLOCK_CUBES)
         shares = moved_share(data, tuple(spec.factor_names))
         print(f"episode length {length or 'default'}: " + ", ".join(f"{k} moved in {v:.3f}" for k, v in shares.items()))
 

@@ -44,16 +44,17 @@ class DynamicsCMI:
 
     @torch.no_grad()
     def estimate(self, model: CBMModel, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
-                 permute: torch.Generator | None = None) -> EdgeEstimate:
+                 permute: torch.Generator | None = None, max_samples: int | None = None) -> EdgeEstimate:
         """:meth:`scores` with standard errors over the transitions: eq. 4.3's per-sample terms on the
-        same subsample and negatives (implicit; the negatives' own randomness is not in them), CDL's
-        per-sample log-likelihood ratios (explicit, where ``permute`` also gives the permuted-input
-        null; the implicit model has none: ValueError)."""
+        same subsample (at most ``max_samples``, default ``cmi_samples``) and negatives (implicit; the
+        negatives' own randomness is not in them), CDL's per-sample log-likelihood ratios on all of them
+        (explicit, where ``permute`` also gives the permuted-input null; the implicit model has none:
+        ValueError)."""
         if not model.implicit:
             return CMIGraph().estimate(model.dynamics, state, action, next_state, permute)
         if permute is not None:
             raise ValueError(NO_IMPLICIT_NULL)
-        limit = model.cfg.cmi_samples
+        limit = max_samples or model.cfg.cmi_samples
         if state.shape[0] > limit:
             index = torch.randperm(state.shape[0], generator=self.generator)[:limit]
             state, action, next_state = state[index], action[index], next_state[index]
