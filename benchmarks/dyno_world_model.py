@@ -1,12 +1,21 @@
 """Table 7.2 analogue (chapter 7, Dyn-O): 20-step rollout PSNR and SSIM on unseen seeds, the slot
 world model (eq. 7.2) against a monolithic world model of matched parameter count.
 
-Data: episodes of ``chemical-pixels`` (4 objects, 32x32) under uniformly random actions, each 1 + 20
-frames. Chemical redraws every position i.i.d. each step, which no model can predict, so each
-episode keeps its first layout and only the colours evolve (the action sets one object's colour, its
-descendants in the chain are re-drawn from the CPT): the rollouts test the colour dynamics. Training
-episodes come from env seed ``seed``, evaluation episodes from ``seed + 10_000`` (unseen layouts and
-colour sequences).
+Data (``--env``): episodes under uniformly random actions, each ``context + 20`` frames.
+
+- ``chemical-pixels`` (4 objects, 32x32; the default, with ``--context 1``). Chemical redraws every
+  position i.i.d. each step, which no model can predict, so each episode keeps its first layout and
+  only the colours evolve (the action sets one object's colour, its descendants in the chain are
+  re-drawn from the CPT): the rollouts test the colour dynamics. Training episodes come from env seed
+  ``seed``, evaluation episodes from ``seed + 10_000`` (unseen layouts and colour sequences).
+- ``sprites``: the bigfish-like sprite game (``envs.sprites``; ``--num-objects`` = the agent and
+  ``num_objects - 1`` fish), the chapter's Table 7.2 scene. Fish swim at constant speeds that one
+  frame does not show, so both models read ``--context`` frames teacher-forced before the 20
+  open-loop steps (the chapter does not say how many context frames its rollouts get). Episodes reset
+  with seeds ``seed, seed + 1, ...`` (evaluation: from ``seed + 10_000``); one in which the agent is
+  eaten or wins within its steps is dropped and the next seed drawn (no frame follows an end), and the
+  count dropped is reported. The world models also fit the reward (eq. 7.2's reward
+  term); no kept episode terminates, so the termination term is left out.
 
 Per seed: the frame autoencoder and the annealed slot model are trained as in Table 7.1's analogue
 (``benchmarks.slots_table``), then frozen; the slots of every frame are computed once and put in one
@@ -18,15 +27,16 @@ order over each episode (:func:`causal.slot_world_model.align_slots`). Then, fro
   feature map (one latent per frame), decoded by the frozen frame decoder, its width chosen so its
   parameter count matches the slot model's.
 
-Both are trained teacher-forced on eq. 7.2 and scored open loop: from the first frame's latent under
-the episode's 20 actions, each predicted frame against the true one. Also reported: the decoder
-ceilings (the true step-20 latents decoded) and ``copy`` (the first frame repeated: no dynamics).
-Budgets are update counts; one torch thread.
+Both are trained teacher-forced on eq. 7.2 and scored open loop: after the ``context`` frames (read
+teacher-forced; with one, the first frame alone) under the episode's next 20 actions, each predicted
+frame against the true one. Also reported: the decoder ceilings (the true step-20 latents decoded) and
+``copy`` (the last context frame repeated: no dynamics). Budgets are update counts; one torch thread.
 
-    python -m benchmarks.dyno_world_model [--seeds 0] [--wm-updates 3000] [--out benchmark-results/dyno/world_model.json]
+    python -m benchmarks.dyno_world_model [--env sprites --num-objects 5 --context 4] [--seeds 0] [--wm-updates 3000] [--out benchmark-results/dyno/world_model.json]
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import sys
 import time
@@ -54,8 +64,10 @@ from causal.slot_world_model import (
 )
 from causal.slots import SlotConfig, SlotModel, fit_autoencoder, frames_to_tensor
 from envs.chemical_pixels import ChemicalPixelsEnv
+from envs.sprites import SpritesEnv
 
 EVAL_SEED_OFFSET = 10_000
+ENVS = ("chemical-pixels", "sprites")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +83,17 @@ class Budget:
     wm_batch: int = 16
     wm_hidden: int = 64
     log_every: int = 500
+    context: int = 1
+    """Frames each rollout reads (teacher-forced) before its ``horizon`` open-loop steps."""
+
+    def __post_init__(self) -> None:
+        if min(self.context, self.horizon, self.train_episodes, self.eval_episodes) < 1:
+            raise ValueError("--context, --horizon, --train-episodes and --eval-episodes must be >= 1")
+
+    @property
+    def steps(self) -> int:
+        """Actions per episode: ``context - 1`` between the context frames, then ``horizon``."""
+        return self.context - 1 + self.horizon
 
 
 @dataclasses.dataclass
@@ -81,6 +104,10 @@ class Episodes:
     """int ``[E, T + 1, H, W]``"""
     actions: torch.Tensor
     """long ``[E, T]``"""
+    rewards: torch.Tensor | None = None
+    """float ``[E, T]`` where the environment gives rewards"""
+    dropped: int = 0
+    """episodes drawn and dropped because they ended early (sprites)"""
 
 
 def episodes_of(env: ChemicalPixelsEnv, seed: int, count: int, horizon: int) -> Episodes:
@@ -102,6 +129,36 @@ def episodes_of(env: ChemicalPixelsEnv, seed: int, count: int, horizon: int) -> 
     return Episodes(torch.from_numpy(frames).view(*shape, *frames.shape[1:]),
                     torch.from_numpy(labels.astype(np.int64)).view(*shape, *labels.shape[1:]),
                     torch.from_numpy(actions))
+
+
+def sprite_episodes(env: SpritesEnv, seed: int, count: int, steps: int) -> Episodes:
+    """``count`` episodes of ``steps`` uniformly random moves (``steps + 1`` frames) of the sprite game,
+    drawn from seeds ``seed, seed + 1, ...``; one that ends (the agent eaten or grown to win) within
+    its steps is dropped and the next seed drawn."""
+    frames = np.zeros((count, steps + 1, env.frame_size, env.frame_size, 3), np.uint8)
+    labels = np.zeros((count, steps + 1, env.frame_size, env.frame_size), np.int64)
+    actions = np.zeros((count, steps), np.int64)
+    rewards = np.zeros((count, steps), np.float32)
+    kept = drawn = 0
+    while kept < count:
+        if drawn >= 20 * count:
+            raise RuntimeError(f"only {kept} of {drawn} sprite episodes lasted {steps} steps")
+        _, info = env.reset(seed=seed + drawn)
+        rng = np.random.default_rng((seed, drawn))
+        drawn += 1
+        frames[kept, 0], labels[kept, 0] = info["frame"], info["masks"].argmax(0)
+        ended = False
+        for t in range(steps):
+            actions[kept, t] = rng.integers(env.num_moves)
+            _, rewards[kept, t], terminated, truncated, info = env.step(int(actions[kept, t]))
+            frames[kept, t + 1], labels[kept, t + 1] = info["frame"], info["masks"].argmax(0)
+            if terminated or truncated:
+                ended = True
+                break
+        if not ended:
+            kept += 1
+    return Episodes(torch.from_numpy(frames), torch.from_numpy(labels), torch.from_numpy(actions),
+                    torch.from_numpy(rewards), dropped=drawn - count)
 
 
 @torch.no_grad()
@@ -135,14 +192,16 @@ def decode_features(model: SlotModel, features: torch.Tensor) -> torch.Tensor:
 
 
 def train_world_model(wm: nn.Module, latents: torch.Tensor, actions: torch.Tensor, budget: Budget,
-                      seed: int, name: str) -> dict[str, Any]:
-    """Teacher-forced eq. 7.2 (Chemical has no reward or termination to predict) on random episodes."""
+                      seed: int, name: str, rewards: torch.Tensor | None = None) -> dict[str, Any]:
+    """Teacher-forced eq. 7.2 on random episodes: the next latents, and the rewards where given
+    (Chemical has no reward; no training episode terminates, so no termination term)."""
     optimizer = torch.optim.Adam(wm.parameters(), lr=WorldModelConfig().lr)
     batches = torch.Generator().manual_seed(seed)
     started, loss = time.perf_counter(), torch.tensor(float("nan"))
     for u in range(1, budget.wm_updates + 1):
         idx = torch.randint(len(latents), (budget.wm_batch,), generator=batches)
-        loss = world_model_loss(wm(latents[idx, :-1], actions[idx]), latents[idx, 1:])
+        loss = world_model_loss(wm(latents[idx, :-1], actions[idx]), latents[idx, 1:],
+                                None if rewards is None else rewards[idx])
         optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(wm.parameters(), 1.0)
@@ -163,25 +222,41 @@ def scores(images: torch.Tensor, truth: torch.Tensor) -> dict[str, Any]:
 
 
 def evaluate(model: SlotModel, slot_wm: SlotWorldModel, mono_wm: MonolithicWorldModel,
-             test: Episodes) -> dict[str, Any]:
+             test: Episodes, context: int = 1) -> dict[str, Any]:
+    """Open-loop rollouts after ``context`` frames (the first ``context - 1`` transitions read
+    teacher-forced), every later frame predicted and scored."""
+    c = context - 1
     slots, features = latents_of(model, test.frames)
-    truth = frames_to_tensor(test.frames[:, 1:].flatten(0, 1)).view(*test.frames.shape[:1], -1, 3,
-                                                                      *test.frames.shape[2:4])
+    truth = frames_to_tensor(test.frames[:, context:].flatten(0, 1)).view(*test.frames.shape[:1], -1, 3,
+                                                                            *test.frames.shape[2:4])
     e, h = truth.shape[:2]
-    slot_images = decode_slots(model, slot_wm.rollout(slots[:, 0], test.actions).flatten(0, 1)).view_as(truth)
-    mono_images = decode_features(model, mono_wm.rollout(features[:, 0], test.actions).flatten(0, 1)).view_as(truth)
-    copy = frames_to_tensor(test.frames[:, 0])[:, None].expand_as(truth)
+    ahead = test.actions[:, c:]
+    slot_hidden = slot_wm.observe(slots[:, :c], test.actions[:, :c]) if c else None
+    mono_hidden = mono_wm.observe(features[:, :c], test.actions[:, :c]) if c else None
+    slot_images = decode_slots(model, slot_wm.rollout(slots[:, c], ahead, slot_hidden).flatten(0, 1)).view_as(truth)
+    mono_images = decode_features(model, mono_wm.rollout(features[:, c], ahead, mono_hidden).flatten(0, 1)).view_as(truth)
+    copy = frames_to_tensor(test.frames[:, c])[:, None].expand_as(truth)
     last = truth[:, -1:]
     return {"slot": scores(slot_images, truth), "monolithic": scores(mono_images, truth), "copy": scores(copy, truth),
             "ceiling_slot": scores(decode_slots(model, slots[:, -1]).view(e, 1, *truth.shape[2:]), last),
             "ceiling_monolithic": scores(decode_features(model, features[:, -1]).view(e, 1, *truth.shape[2:]), last)}
 
 
-def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
+def run_seed(seed: int, budget: Budget, env_name: str = "chemical-pixels") -> dict[str, Any]:
     torch.manual_seed(seed)
-    env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
-    train = episodes_of(env, seed, budget.train_episodes, budget.horizon)
-    test = episodes_of(env, seed + EVAL_SEED_OFFSET, budget.eval_episodes, budget.horizon)
+    env: ChemicalPixelsEnv | SpritesEnv
+    if env_name == "sprites":
+        if budget.num_objects < 2:
+            raise ValueError("sprites needs --num-objects >= 2 (the agent and at least one fish)")
+        env = SpritesEnv(num_fish=budget.num_objects - 1, frame_size=budget.frame_size)
+        train = sprite_episodes(env, seed, budget.train_episodes, budget.steps)
+        test = sprite_episodes(env, seed + EVAL_SEED_OFFSET, budget.eval_episodes, budget.steps)
+    elif env_name == "chemical-pixels":
+        env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
+        train = episodes_of(env, seed, budget.train_episodes, budget.steps)
+        test = episodes_of(env, seed + EVAL_SEED_OFFSET, budget.eval_episodes, budget.steps)
+    else:
+        raise ValueError(f"unknown env {env_name!r}; one of {ENVS}")
     frames = (train.frames.flatten(0, 1), train.labels.flatten(0, 1))
     base = SlotModel(SlotConfig(num_slots=budget.num_objects + 1), budget.frame_size)
     ae_loss = fit_autoencoder(base.autoencoder, frames[0], budget.ae_updates, seed=seed)
@@ -194,11 +269,15 @@ def run_seed(seed: int, budget: Budget) -> dict[str, Any]:
     slot_wm = SlotWorldModel(slots.shape[-1], int(env.action_space.n), WorldModelConfig(hidden=budget.wm_hidden))
     width = monolithic_width(features.shape[-1], int(env.action_space.n), parameter_count(slot_wm))
     mono_wm = MonolithicWorldModel(features.shape[-1], int(env.action_space.n), width)
-    out: dict[str, Any] = {"seed": seed, "autoencoder_mse": ae_loss, "slot_model": slot_record,
-                           "slot_wm": train_world_model(slot_wm, slots, train.actions, budget, seed, "slot"),
+    out: dict[str, Any] = {"seed": seed, "env": env_name, "context": budget.context, "autoencoder_mse": ae_loss,
+                           "episodes_dropped": {"train": train.dropped, "eval": test.dropped},
+                           "slot_model": slot_record,
+                           "slot_wm": train_world_model(slot_wm, slots, train.actions, budget, seed, "slot",
+                                                        train.rewards),
                            "monolithic_wm": {"width": width, **train_world_model(mono_wm, features, train.actions,
-                                                                                  budget, seed, "monolithic")}}
-    out["rollouts"] = evaluate(model, slot_wm.eval(), mono_wm.eval(), test)
+                                                                                  budget, seed, "monolithic",
+                                                                                  train.rewards)}}
+    out["rollouts"] = evaluate(model, slot_wm.eval(), mono_wm.eval(), test, budget.context)
     return out
 
 
@@ -214,9 +293,14 @@ def table(results: list[dict[str, Any]]) -> str:
     return "\n".join(rows)
 
 
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", choices=ENVS, default="chemical-pixels", help="the rendered environment")
+
+
 def main(argv: list[str] | None = None) -> None:
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/world_model.json"),
-               run_seed=lambda seed, budget, _args, _save: run_seed(seed, budget), table=table)
+               run_seed=lambda seed, budget, args, _save: run_seed(seed, budget, args.env), table=table,
+               add_arguments=_add_arguments)
 
 
 if __name__ == "__main__":

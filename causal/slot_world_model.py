@@ -93,9 +93,20 @@ class SlotWorldModel(nn.Module):
                 torch.stack([o.termination_logit for o in outs], 1))
 
     @torch.no_grad()
-    def rollout(self, slots: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Open loop from slots ``[B, K, d]`` under actions ``[B, H]``: predicted slots ``[B, H, K, d]``."""
-        hidden, out = self.initial_hidden(slots), []
+    def observe(self, slots: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The hidden state ``[B, K, h]`` after reading context frames' slots ``[B, C, K, d]`` and the
+        actions taken from them ``[B, C]`` (teacher-forced, as in :meth:`forward`): the state from which
+        :meth:`rollout` continues at frame ``C``."""
+        hidden = self.initial_hidden(slots[:, 0])
+        for t in range(slots.shape[1]):
+            hidden = self.step(slots[:, t], actions[:, t], hidden).hidden
+        return hidden
+
+    @torch.no_grad()
+    def rollout(self, slots: torch.Tensor, actions: torch.Tensor, hidden: torch.Tensor | None = None) -> torch.Tensor:
+        """Open loop from slots ``[B, K, d]`` under actions ``[B, H]``: predicted slots ``[B, H, K, d]``;
+        ``hidden`` from :meth:`observe` to continue after context frames (default: none seen)."""
+        hidden, out = self.initial_hidden(slots) if hidden is None else hidden, []
         for t in range(actions.shape[1]):
             step = self.step(slots, actions[:, t], hidden)
             slots, hidden = step.next_slots, step.hidden
@@ -131,9 +142,18 @@ class MonolithicWorldModel(nn.Module):
                 torch.stack([o.termination_logit for o in outs], 1))
 
     @torch.no_grad()
-    def rollout(self, latent: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Open loop from latents ``[B, D]``: predicted latents ``[B, H, D]``."""
-        hidden, out = latent.new_zeros(len(latent), self.width), []
+    def observe(self, latents: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The hidden state ``[B, width]`` after context latents ``[B, C, D]`` and actions ``[B, C]``."""
+        hidden = latents.new_zeros(len(latents), self.width)
+        for t in range(latents.shape[1]):
+            hidden = self.step(latents[:, t], actions[:, t], hidden).hidden
+        return hidden
+
+    @torch.no_grad()
+    def rollout(self, latent: torch.Tensor, actions: torch.Tensor, hidden: torch.Tensor | None = None) -> torch.Tensor:
+        """Open loop from latents ``[B, D]``: predicted latents ``[B, H, D]``; ``hidden`` from
+        :meth:`observe` to continue after context frames."""
+        hidden, out = latent.new_zeros(len(latent), self.width) if hidden is None else hidden, []
         for t in range(actions.shape[1]):
             step = self.step(latent, actions[:, t], hidden)
             latent, hidden = step.next_slots, step.hidden

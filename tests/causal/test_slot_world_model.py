@@ -84,6 +84,27 @@ def test_the_monolithic_baseline_is_sized_to_match_the_slot_model() -> None:
     assert mono(latents, actions)[0].shape == (B, T, 64) and mono.rollout(latents[:, 0], actions).shape == (B, T, 64)
 
 
+def test_a_rollout_after_context_frames_continues_the_teacher_forced_sequence() -> None:
+    """observe + rollout: the first open-loop step after C context frames is the teacher-forced
+    prediction at frame C, for both models (so context frames reach the rollout through the hidden
+    state), and without context the rollout is unchanged."""
+    context = 2
+    model = _model()
+    slots, actions = torch.randn(B, T, K, D), torch.randint(ACTIONS, (B, T))
+    teacher, _, _ = model(slots, actions)
+    hidden = model.observe(slots[:, :context], actions[:, :context])
+    rolled = model.rollout(slots[:, context], actions[:, context:], hidden)
+    torch.testing.assert_close(rolled[:, 0], teacher[:, context], rtol=1e-5, atol=1e-5)
+    assert (model.rollout(slots[:, context], actions[:, context:])[:, 0] - rolled[:, 0]).abs().max() > 1e-4
+    torch.testing.assert_close(model.rollout(slots[:, 0], actions), model.rollout(slots[:, 0], actions, None))
+    torch.manual_seed(0)
+    mono = MonolithicWorldModel(64, ACTIONS, 16).eval()
+    latents = torch.randn(B, T, 64)
+    teacher_mono, _, _ = mono(latents, actions)
+    rolled_mono = mono.rollout(latents[:, context], actions[:, context:], mono.observe(latents[:, :context], actions[:, :context]))
+    torch.testing.assert_close(rolled_mono[:, 0], teacher_mono[:, context], rtol=1e-5, atol=1e-5)
+
+
 def test_align_slots_undoes_a_per_frame_permutation() -> None:
     torch.manual_seed(1)
     masks = torch.eye(K)[None, None].expand(2, T, K, K).clone()
