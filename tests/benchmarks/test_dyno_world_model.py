@@ -48,3 +48,16 @@ def test_the_sprite_table_scores_twenty_steps_after_the_context(tmp_path) -> Non
     expected = psnr(copy, truth).mean(0)
     assert rollouts["copy"]["psnr_per_step"] == pytest.approx(expected.tolist(), rel=1e-5)
     assert record["episodes_dropped"]["eval"] == test.dropped
+    assert set(bench.ROWS) <= set(rollouts) and "psnr_objects_last" in rollouts["slot"]
+
+
+def test_object_psnr_reads_only_the_objects_pixels() -> None:
+    truth = torch.zeros(2, 3, 4, 4)
+    labels = torch.zeros(2, 4, 4, dtype=torch.long)
+    labels[0, 1:3, 1:3] = 2
+    images = torch.full_like(truth, 0.5)  # background off by 0.5 ...
+    images[0, :, 1:3, 1:3] = 0.1  # ... the object's pixels off by 0.1: 20 dB on them
+    got = bench.object_psnr(images, truth, labels)
+    assert float(got[0]) == pytest.approx(20.0, rel=1e-5)
+    assert bool(got[1].isnan()), "a frame without objects has no objects' PSNR"
+    assert float(psnr(images[0], truth[0])) < 10.0, "the full frame is dominated by the background"
