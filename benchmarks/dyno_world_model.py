@@ -251,13 +251,25 @@ def evaluate(model: SlotModel, slot_wm: SlotWorldModel, mono_wm: MonolithicWorld
     ahead = test.actions[:, c:]
     slot_hidden = slot_wm.observe(slots[:, :c], test.actions[:, :c]) if c else None
     mono_hidden = mono_wm.observe(features[:, :c], test.actions[:, :c]) if c else None
-    slot_images = decode_slots(model, slot_wm.rollout(slots[:, c], ahead, slot_hidden).flatten(0, 1)).view_as(truth)
-    mono_images = decode_features(model, mono_wm.rollout(features[:, c], ahead, mono_hidden).flatten(0, 1)).view_as(truth)
+    slot_rolled = slot_wm.rollout(slots[:, c], ahead, slot_hidden)
+    mono_rolled = mono_wm.rollout(features[:, c], ahead, mono_hidden)
+    slot_images = decode_slots(model, slot_rolled.flatten(0, 1)).view_as(truth)
+    mono_images = decode_features(model, mono_rolled.flatten(0, 1)).view_as(truth)
     copy = frames_to_tensor(test.frames[:, c])[:, None].expand_as(truth)
     copy_slot = decode_slots(model, slots[:, c])[:, None].expand_as(truth)
     copy_features = decode_features(model, features[:, c])[:, None].expand_as(truth)
     labels, last = test.labels[:, context:], truth[:, -1:]
-    return {"slot": scores(slot_images, truth, labels), "monolithic": scores(mono_images, truth, labels),
+
+    def latent_error(rolled: torch.Tensor, true: torch.Tensor) -> dict[str, list[float]]:
+        """Mean squared error per step in the model's own latent space, the rollout's and the copy's
+        (the last context latent held): decoder-free evidence of whether the dynamics was learned."""
+        future = true[:, context:]
+        held = true[:, c : c + 1].expand_as(future)
+        per_step = lambda x: (x - future).square().flatten(2).mean(-1).mean(0).tolist()  # noqa: E731
+        return {"rollout": per_step(rolled), "copy": per_step(held)}
+
+    return {"latent_error": {"slot": latent_error(slot_rolled, slots), "monolithic": latent_error(mono_rolled, features)},
+            "slot": scores(slot_images, truth, labels), "monolithic": scores(mono_images, truth, labels),
             "copy": scores(copy, truth, labels),
             "copy_slot": scores(copy_slot, truth, labels), "copy_monolithic": scores(copy_features, truth, labels),
             "ceiling_slot": scores(decode_slots(model, slots[:, -1]).view(e, 1, *truth.shape[2:]), last, labels[:, -1:]),
@@ -323,6 +335,15 @@ def table(results: list[dict[str, Any]]) -> str:
             rows.append(f"| {name} (seed {r['seed']}) | {params} | {s['psnr_last']['mean']:.2f} +- "
                         f"{s['psnr_last']['stderr']:.2f} | {s['ssim_last']['mean']:.3f} +- {s['ssim_last']['stderr']:.3f} "
                         f"| {np.mean(s['psnr_per_step']):.2f} | {objects} |")
+    rows += ["", "| world model | latent error at steps 1 / 10 / 20, rollout / copy of the last context latent |",
+             "|---|---|"]
+    for name in ("slot", "monolithic"):
+        for r in results:
+            if "latent_error" not in r["rollouts"]:
+                continue
+            e = r["rollouts"]["latent_error"][name]
+            cells = " / ".join(f"{e['rollout'][t]:.4f} / {e['copy'][t]:.4f}" for t in (0, 9, len(e["copy"]) - 1))
+            rows.append(f"| {name} (seed {r['seed']}) | {cells} |")
     return "\n".join(rows)
 
 

@@ -49,6 +49,9 @@ def test_the_sprite_table_scores_twenty_steps_after_the_context(tmp_path) -> Non
     assert rollouts["copy"]["psnr_per_step"] == pytest.approx(expected.tolist(), rel=1e-5)
     assert record["episodes_dropped"]["eval"] == test.dropped
     assert set(bench.ROWS) <= set(rollouts) and "psnr_objects_last" in rollouts["slot"]
+    for name in ("slot", "monolithic"):
+        error = rollouts["latent_error"][name]
+        assert len(error["rollout"]) == len(error["copy"]) == 20 and min(error["copy"]) >= 0.0
 
 
 def test_object_psnr_reads_only_the_objects_pixels() -> None:
