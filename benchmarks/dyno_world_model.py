@@ -33,11 +33,13 @@ frame against the true one. Also reported: the decoder ceilings (the true step-2
 ``copy`` (the last context frame repeated: no dynamics). Budgets are update counts; one torch thread.
 
     python -m benchmarks.dyno_world_model [--env sprites --num-objects 5 --context 4] [--seeds 0] [--wm-updates 3000] [--out benchmark-results/dyno/world_model.json]
+    python -m benchmarks.dyno_world_model --merge seed0.json seed1.json   # one table over runs' JSON files
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -344,7 +346,25 @@ def table(results: list[dict[str, Any]]) -> str:
             e = r["rollouts"]["latent_error"][name]
             cells = " / ".join(f"{e['rollout'][t]:.4f} / {e['copy'][t]:.4f}" for t in (0, 9, len(e["copy"]) - 1))
             rows.append(f"| {name} (seed {r['seed']}) | {cells} |")
+    if len(results) > 1:
+        rows += ["", f"| over {len(results)} seeds (mean +- sd) | PSNR at step 20 | SSIM at step 20 | objects' PSNR at step 20 "
+                 "| latent error at step 20, rollout / copy |", "|---|---|---|---|---|"]
+        for name in ROWS:
+            if not all(name in r["rollouts"] for r in results):
+                continue
+            cells = [_spread([r["rollouts"][name][key]["mean"] for r in results], digits)
+                     if all(key in r["rollouts"][name] for r in results) else "-"
+                     for key, digits in (("psnr_last", 2), ("ssim_last", 3), ("psnr_objects_last", 2))]
+            ratio = "-"
+            if name in ("slot", "monolithic") and all("latent_error" in r["rollouts"] for r in results):
+                ratio = _spread([r["rollouts"]["latent_error"][name]["rollout"][-1]
+                                 / r["rollouts"]["latent_error"][name]["copy"][-1] for r in results], 2)
+            rows.append(f"| {name} | {' | '.join(cells)} | {ratio} |")
     return "\n".join(rows)
+
+
+def _spread(values: list[float], digits: int) -> str:
+    return f"{np.mean(values):.{digits}f} +- {np.std(values):.{digits}f}"
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
@@ -352,6 +372,10 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["--merge"]:  # the table over seeds run in separate processes
+        print(table([record for path in args[1:] for record in json.loads(Path(path).read_text())["results"]]))
+        return
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/world_model.json"),
                run_seed=lambda seed, budget, args, _save: run_seed(seed, budget, args.env), table=table,
                add_arguments=_add_arguments)

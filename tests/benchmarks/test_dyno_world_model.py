@@ -32,7 +32,7 @@ def test_a_context_below_one_is_refused() -> None:
     assert bench.Budget(context=4, horizon=20).steps == 23
 
 
-def test_the_sprite_table_scores_twenty_steps_after_the_context(tmp_path) -> None:
+def test_the_sprite_table_scores_twenty_steps_after_the_context(tmp_path, capsys) -> None:
     out = tmp_path / "wm.json"
     bench.main(["--env", "sprites", "--num-objects", "3", "--context", "3", "--train-episodes", "4",
                 "--eval-episodes", "3", "--ae-updates", "2", "--slot-updates", "2", "--wm-updates", "2",
@@ -52,6 +52,11 @@ def test_the_sprite_table_scores_twenty_steps_after_the_context(tmp_path) -> Non
     for name in ("slot", "monolithic"):
         error = rollouts["latent_error"][name]
         assert len(error["rollout"]) == len(error["copy"]) == 20 and min(error["copy"]) >= 0.0
+    capsys.readouterr()
+    bench.main(["--merge", str(out), str(out)])  # one table over runs written by separate processes
+    merged = capsys.readouterr().out
+    slot_psnr = rollouts["slot"]["psnr_last"]["mean"]
+    assert "over 2 seeds" in merged and f"| slot | {slot_psnr:.2f} +- 0.00 |" in merged
 
 
 def test_object_psnr_reads_only_the_objects_pixels() -> None:
