@@ -29,8 +29,11 @@ order over each episode (:func:`causal.slot_world_model.align_slots`). Then, fro
 
 Both are trained teacher-forced on eq. 7.2 and scored open loop: after the ``context`` frames (read
 teacher-forced; with one, the first frame alone) under the episode's next 20 actions, each predicted
-frame against the true one. Also reported: the decoder ceilings (the true step-20 latents decoded) and
-``copy`` (the last context frame repeated: no dynamics). Budgets are update counts; one torch thread.
+frame against the true one. Also reported: the decoder ceilings (the true step-20 latents decoded);
+``copy`` (the last context frame repeated: no dynamics), and the same through each model's own
+decoder (``copy_slot``, ``copy_monolithic``: what the rollout is worth once its decoder is held
+fixed); the PSNR over the true objects' pixels; and each rollout's error in its model's own latent
+space beside holding the last context latent. Budgets are update counts; one torch thread.
 
     python -m benchmarks.dyno_world_model [--env sprites --num-objects 5 --context 4] [--seeds 0] [--wm-updates 3000] [--out benchmark-results/dyno/world_model.json]
     python -m benchmarks.dyno_world_model --merge seed0.json seed1.json   # one table over runs' JSON files
