@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -375,19 +374,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = sys.argv[1:] if argv is None else argv
-    if args[:1] == ["--merge"]:  # the table over seeds run in separate processes
-        p = argparse.ArgumentParser(description="one table over the JSON files of dyno_world_model runs")
-        p.add_argument("--merge", nargs="+", type=Path, required=True, help="the runs' --out files")
-        paths = p.parse_args(args).merge
-        if missing := [str(path) for path in paths if not path.is_file()]:
-            p.error(f"no such file: {', '.join(missing)}")
-        print(table([record for path in paths for record in json.loads(path.read_text())["results"]]))
-        return
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/dyno/world_model.json"),
                run_seed=lambda seed, budget, args, _save: run_seed(seed, budget, args.env), table=table,
                add_arguments=_add_arguments)
-
 
 if __name__ == "__main__":
     main()

@@ -4,13 +4,15 @@ A benchmark gives its ``Budget`` (integer fields, each becoming ``--field-name``
 path, ``run_seed(seed, budget, args, save)`` and ``table(results)``; :func:`table_main` parses the
 flags, runs the seeds one after another with one torch thread, rewrites the JSON after every seed
 (and whenever ``run_seed`` calls ``save`` with a partial record, so a long seed leaves what it has
-measured so far), and prints the table.
+measured so far), and prints the table. ``--merge FILE ...`` prints one table over earlier runs'
+files (seeds run in separate processes) instead.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Any, Callable
 
@@ -24,7 +26,13 @@ def table_main(argv: list[str] | None, *, description: str | None, budget_type: 
                run_seed: Callable[[int, Any, argparse.Namespace, SaveFn], Record],
                table: Callable[[list[Record]], str],
                add_arguments: Callable[[argparse.ArgumentParser], None] = lambda _: None) -> list[Record]:
-    """Run ``run_seed`` for every ``--seeds`` entry and return the records (also written to ``--out``)."""
+    """Run ``run_seed`` for every ``--seeds`` entry and return the records (also written to ``--out``).
+
+    ``--merge FILE ...`` instead prints one table over the records of earlier runs' ``--out`` files (seeds
+    run in separate processes) and returns them, running nothing."""
+    args_list = sys.argv[1:] if argv is None else argv
+    if args_list[:1] == ["--merge"]:
+        return merge_main(args_list, description, table)
     p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     fields = dataclasses.fields(budget_type)
@@ -47,3 +55,16 @@ def table_main(argv: list[str] | None, *, description: str | None, budget_type: 
         save()
     print(table(results))
     return results
+
+
+def merge_main(argv: list[str], description: str | None, table: Callable[[list[Record]], str]) -> list[Record]:
+    """``--merge FILE ...``: the records of the given ``--out`` files in one table (files checked first)."""
+    p = argparse.ArgumentParser(description=f"one table over earlier runs' --out files. {description or ''}",
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--merge", nargs="+", type=Path, required=True, help="the runs' --out files")
+    paths = p.parse_args(argv).merge
+    if missing := [str(path) for path in paths if not path.is_file()]:
+        p.error(f"no such file: {', '.join(missing)}")
+    records = [record for path in paths for record in json.loads(path.read_text())["results"]]
+    print(table(records))
+    return records

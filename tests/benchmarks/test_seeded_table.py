@@ -44,3 +44,15 @@ def test_a_budget_flag_takes_integers_only(tmp_path: Path) -> None:
         table_main(["--updates", "1.5", "--out", str(tmp_path / "t.json")], description=None, budget_type=Budget,
                    default_out=tmp_path / "t.json", run_seed=lambda *a: {}, table=str)
     assert not (tmp_path / "t.json").exists()
+
+
+def test_merge_prints_one_table_over_earlier_runs_and_refuses_missing_files(tmp_path, capsys) -> None:
+    out = tmp_path / "a.json"
+    out.write_text(json.dumps({"budget": {}, "results": [{"seed": 0, "x": 1.0}, {"seed": 1, "x": 3.0}]}))
+    records = table_main(["--merge", str(out), str(out)], description=None, budget_type=object,
+                         default_out=tmp_path / "unused.json", run_seed=None,
+                         table=lambda rs: f"{len(rs)} records, mean {sum(r['x'] for r in rs) / len(rs)}")
+    assert len(records) == 4 and "4 records, mean 2.0" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        table_main(["--merge", str(tmp_path / "missing.json")], description=None, budget_type=object,
+                   default_out=out, run_seed=None, table=str)
