@@ -7,11 +7,14 @@ history's targets, ``b`` uniform, every L = 20 steps; DIAYN: a uniform skill eve
 the same number of episodes of uniformly random primitives for reference. Reported: per
 multi-object graph row (an object depending on another object, the interactions Fig. 6.4 shows), the
 share of episodes that induce it at least once, mean and standard deviation over seeds, and the
-mean over those rows. One thread; the budget (env steps, updates, wall seconds) is printed.
+mean over those rows. Then, per SkiLD target, how often 20-step segments of its skill induce it
+against uniformly random actions from the same start states (``--target-segments``, 0 to skip):
+the low level's own test. One thread; the budget (env steps, updates, wall seconds) is printed.
 
     python -m benchmarks.skild_coverage [--env installing-printer] [--action-mode primitives|grid] [--env-steps 100000] [--seeds 0 1 2]
         [--episodes 500] [--episode-length 0] [--out runs/skild-coverage] [--graphs true|pcmi]
-        [--methods skild diayn random] [--updates-per-step 1] [--eps-decay-steps 40000] [--diversity-weight 0.5]
+        [--methods skild diayn random] [--updates-per-step 1] [--eps-decay-steps 40000] [--diversity-weight 0.5] [--relabel-horizon 1] [--n-step 1]
+        [--target-segments 160]
 
 ``--graphs pcmi`` pre-trains SkiLD on the point-wise CMI graphs of a CDL model trained on the run's
 own transitions instead of the true ones (the output is then ``<env>-pcmi.json``).
@@ -28,7 +31,7 @@ import torch
 
 from causal.skild import SkiLDConfig, object_names
 from causal.skild_agent import SkillLearnerConfig
-from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain
+from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain, target_hit_rates
 
 METHODS = ("skild", "diayn", "random")
 TITLES = {"skild": "SkiLD", "diayn": "DIAYN", "random": "random primitives"}
@@ -36,7 +39,7 @@ TITLES = {"skild": "SkiLD", "diayn": "DIAYN", "random": "random primitives"}
 
 def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed: int, graphs: str,
              methods: tuple[str, ...], learner: SkillLearnerConfig, updates_per_step: int,
-             cfg: SkiLDConfig = SkiLDConfig()) -> dict[str, dict]:
+             cfg: SkiLDConfig = SkiLDConfig(), target_segments: int = 0) -> dict[str, dict]:
     """Coverage per method for one seed: ``{method: {"rows": {(factor, key): share}, "train_cpu_s": ...}}``."""
     out: dict[str, dict] = {}
     run = PretrainConfig(env=env, env_steps=env_steps, episode_length=episode_length, graphs=graphs,
@@ -50,6 +53,9 @@ def one_seed(env: str, env_steps: int, episodes: int, episode_length: int, seed:
                         hits=hits)
         out[mode] = {"rows": rows, "train_cpu_s": trained, "updates": agent.updates,
                      "targets": len(agent.history.targets), "target_hits": hits}
+        if mode == "skild" and target_segments:
+            out[mode]["target_rates"] = target_hit_rates(agent, env, target_segments, seed=20_000 + seed,
+                                                         skill_steps=agent.cfg.skill_steps)
         print(f"seed {seed} {mode}: {trained:.0f} CPU s, {agent.updates} updates, "
               f"{len(agent.history.targets)} targets, {hits.get('induced', 0)} of {hits.get('segments', 0)} "
               "random skills induced their target", flush=True)
@@ -81,27 +87,47 @@ def markdown(lines: list[dict], methods: tuple[str, ...]) -> str:
     return head + body + "| **mean over these rows** | " + " | ".join(f"{mean[m]:.2f}" for m in methods) + " |\n"
 
 
+def target_table(results: list[dict[str, dict]]) -> str:
+    """Per target (the union over seeds): the share of skill segments that induce it, the skill
+    against uniformly random actions from the same start states, mean over the seeds that have it."""
+    per: dict[str, list[tuple[float, float]]] = {}
+    for r in results:
+        for line in r.get("skild", {}).get("target_rates", []):
+            per.setdefault(line["target"], []).append((line["skill"], line["random"]))
+    if not per:
+        return ""
+    head = ("| SkiLD target | seeds | induced by its skill | by random actions, same start states |\n"
+            "|---|---|---|---|\n")
+    body = "".join(f"| {name} | {len(v)} | {np.mean([a for a, _ in v]):.2f} | {np.mean([b for _, b in v]):.2f} |\n"
+                   for name, v in sorted(per.items(), key=lambda kv: -np.mean([b for _, b in kv[1]])))
+    return head + body
+
+
 def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_length: int, out: Path,
          graphs: str = "true", methods: tuple[str, ...] = METHODS, learner: SkillLearnerConfig = SkillLearnerConfig(),
-         updates_per_step: int = 1, cfg: SkiLDConfig = SkiLDConfig()) -> None:
+         updates_per_step: int = 1, cfg: SkiLDConfig = SkiLDConfig(), target_segments: int = 0) -> None:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     from envs.registry import make_env
     objects = object_names(make_env(env).env_spec().factor_objects)
     wall = time.time()
     methods = tuple(m for m in METHODS if m in methods)
-    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods, learner, updates_per_step, cfg)
-               for s in seeds]
+    results = [one_seed(env, env_steps, episodes, episode_length, s, graphs, methods, learner, updates_per_step, cfg,
+                        target_segments) for s in seeds]
     lines = table(results, objects, methods)
     text = markdown(lines, methods)
+    targets = target_table(results)
+    if targets:
+        text += "\n" + targets
     budget = {m: {"train_cpu_s": [r[m]["train_cpu_s"] for r in results], "updates": [r[m]["updates"] for r in results],
                   "targets": [r[m]["targets"] for r in results],
-                  "target_hits": [r[m]["target_hits"] for r in results]} for m in methods if m != "random"}
+                  "target_hits": [r[m]["target_hits"] for r in results],
+                  "target_rates": [r[m].get("target_rates", []) for r in results]} for m in methods if m != "random"}
     name = env if graphs == "true" else f"{env}-{graphs}"
     (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
                                                  "updates_per_step": updates_per_step,
-                                                 "eps_decay_steps": learner.eps_decay_steps,
-                                                 "diversity_weight": cfg.diversity_weight,
+                                                 "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step,
+                                                 "diversity_weight": cfg.diversity_weight, "relabel_horizon": cfg.relabel_horizon,
                                                  "episodes": episodes, "episode_length": episode_length,
                                                  "wall_s": time.time() - wall, "budget": budget, "table": lines},
                                                 indent=1))
@@ -129,9 +155,18 @@ if __name__ == "__main__":
     parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
     parser.add_argument("--diversity-weight", type=float, default=SkiLDConfig().diversity_weight,
                         help="lambda_b of SkiLD's diversity reward (0: Fig. 6.6's 'without diversity')")
+    parser.add_argument("--target-segments", type=int, default=160,
+                        help="per SkiLD target, skill segments (and as many of random actions from the same "
+                             "start states) run to measure how often each induces it (0: skip)")
+    parser.add_argument("--n-step", type=int, default=SkillLearnerConfig().n_step,
+                        help="steps of reward the skill Q-learner sums before bootstrapping (the authors: 3)")
+    parser.add_argument("--relabel-horizon", type=int, default=SkiLDConfig().relabel_horizon,
+                        help="hindsight targets from the replayed step or up to this many steps minus one later "
+                             "in its episode (1, the default: the replayed step's own graph only; 20 = L: HER's future strategy)")
     args = parser.parse_args()
     if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
         args.env = f"{args.env}-{args.action_mode}"
     main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out, args.graphs,
-         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps), args.updates_per_step,
-         SkiLDConfig(diversity_weight=args.diversity_weight))
+         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step), args.updates_per_step,
+         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon),
+         args.target_segments)

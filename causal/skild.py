@@ -14,9 +14,10 @@ attribute of ``I``.
 - :func:`skill_reward`: ``1[induced row = target row] * (1 + lambda_b log q(b | s', G))`` (eq. 6.2).
 - :class:`DiversityDiscriminator`: DIAYN's ``q(b | s, G)``, a small MLP on the state's one-hots and
   the target, batched.
-- :func:`hindsight_relabel`: a fraction (7/8) of samples relabelled to a row they induced,
-  preferring rarely seen rows; rewards are recomputed with :func:`skill_reward`, so they stay
-  consistent with the labels.
+- :func:`hindsight_relabel`: a fraction (7/8) of samples relabelled to a row induced at that step or
+  a later one of its episode (HER's "future" strategy, up to ``relabel_horizon - 1`` steps on),
+  preferring rarely seen rows; rewards are recomputed with :func:`skill_reward` from the replayed
+  step's own graph, so they stay consistent with the labels.
 
 Everything works on batches (numpy for graphs and counts, torch for the discriminator).
 """
@@ -44,11 +45,15 @@ class SkiLDConfig:
     skill_steps: int = doc(20, "L: steps a selected skill runs before the high level picks again")
     diversity_weight: float = doc(0.5, "lambda_b: weight of the diversity reward log q(b | s, G) (eq. 6.2)")
     relabel_fraction: float = doc(0.875, "share of replayed samples relabelled to a graph they induced (hindsight)")
+    relabel_horizon: int = doc(1, "hindsight targets come from the graph induced at the replayed step or up to this "
+                                  "many steps minus one later in its episode (HER's 'future' strategy, e.g. L = 20); "
+                                  "1 (the default): the replayed step's own graph only")
     discriminator_hidden: int = doc(64, "hidden width of the diversity discriminator q")
     discriminator_lr: float = doc(1e-3, "Adam learning rate of the diversity discriminator")
 
     def __post_init__(self) -> None:
-        for name in ("diversity_k", "eligible_after", "max_targets", "skill_steps", "discriminator_hidden"):
+        for name in ("diversity_k", "eligible_after", "max_targets", "skill_steps", "relabel_horizon",
+                     "discriminator_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.relabel_fraction <= 1.0:
@@ -194,8 +199,12 @@ def skill_reward(induced: np.ndarray, factor: np.ndarray, row: np.ndarray, log_q
 
 def hindsight_relabel(induced: np.ndarray, factor: np.ndarray, row: np.ndarray, counts: np.ndarray,
                       fraction: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Relabel ``fraction`` of the samples to a row they induced: the factor drawn with weights
+    """Relabel ``fraction`` of the samples to a row of ``induced``: the factor drawn with weights
     ``count^(-1/2)`` of its induced row (rarely seen rows preferred), its induced row the new target.
+
+    ``induced`` and ``counts`` are the graphs achieved where the new targets come from: the samples'
+    own steps, or (HER's "future" strategy) a later step of each sample's episode, in which case the
+    reward is still computed from the sample's own induced graph (:func:`skill_reward`).
 
     Returns ``(factor', row', relabelled [B] bool)``; rows not relabelled keep their labels."""
     b, n = counts.shape

@@ -53,6 +53,12 @@ class SkillLearnerConfig:
     selector_entropy: float = doc(0.01, "entropy bonus of the graph-selection policy")
     selector_batch: int = doc(64, "finished skill segments per graph-selection update")
     diayn_k: int = doc(8, "skills of the DIAYN baseline (mode diayn)")
+    n_step: int = doc(1, "steps of reward summed before bootstrapping (the authors' Rainbow: 3); the later "
+                         "steps are paid for the replayed sample's skill, without an off-policy correction")
+
+    def __post_init__(self) -> None:
+        if self.n_step < 1:
+            raise ValueError(f"n_step must be >= 1, got {self.n_step}")
 
 
 def one_hot_states(states: np.ndarray, sizes: tuple[int, ...]) -> torch.Tensor:
@@ -95,7 +101,13 @@ class GraphSelector(nn.Module):
 
 
 class SkillReplay:
-    """A ring of skill transitions with their induced (object-level) graphs and skill labels."""
+    """A ring of skill transitions with their induced (object-level) graphs and skill labels.
+
+    Rows added with their ``stream`` (an env or worker), ``episode`` and ``step`` are linked to the
+    next step of the same episode (``successor``), so :meth:`future` can find the later steps that
+    hindsight relabelling draws targets from (HER's "future" strategy). A row the ring overwrites
+    loses its link, and a link is followed only where the row it leads to holds the same episode's
+    next step."""
 
     def __init__(self, capacity: int, state_dim: int, num_factors: int) -> None:
         n = num_factors
@@ -106,19 +118,64 @@ class SkillReplay:
             "induced": np.zeros((capacity, n, n + 1), bool), "factor": np.zeros(capacity, np.int64),
             "row": np.zeros((capacity, n + 1), bool), "b": np.zeros(capacity, np.int64),
             "counts": np.zeros((capacity, n), np.int64),
+            "stream": np.full(capacity, -1, np.int64), "episode": np.full(capacity, -1, np.int64),
+            "step": np.full(capacity, -1, np.int64), "successor": np.full(capacity, -1, np.int64),
         }
+        self._last: dict[int, int] = {}
 
-    def add(self, **rows: np.ndarray) -> None:
+    def add(self, stream: np.ndarray | None = None, episode: np.ndarray | None = None, step: np.ndarray | None = None,
+            **rows: np.ndarray) -> None:
+        """Append rows; with ``stream``, ``episode`` and ``step`` (each ``[B]``, rows of one stream in
+        step order) each row is linked as its episode's previous step's successor."""
         count = len(rows["action"])
         index = (self.next + np.arange(count)) % self.capacity
         for name, value in rows.items():
             self.fields[name][index] = value
+        f = self.fields
+        f["successor"][index] = -1
+        if stream is None or episode is None or step is None:
+            f["stream"][index] = f["episode"][index] = f["step"][index] = -1
+        else:
+            f["stream"][index], f["episode"][index], f["step"][index] = stream, episode, step
+            for position, key in zip(index.tolist(), np.asarray(stream).tolist()):
+                last = self._last.get(key)
+                if last is not None and self._follows(last, position):
+                    f["successor"][last] = position
+                self._last[key] = position
         self.next = (self.next + count) % self.capacity
         self.size = min(self.size + count, self.capacity)
 
-    def sample(self, batch: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
-        index = rng.integers(0, self.size, batch)
+    def _follows(self, before, after) -> np.ndarray:
+        """Whether row ``after`` holds the step right after row ``before``'s, in the same episode."""
+        f = self.fields
+        return ((f["stream"][after] == f["stream"][before]) & (f["stream"][after] >= 0)
+                & (f["episode"][after] == f["episode"][before]) & (f["step"][after] == f["step"][before] + 1))
+
+    def sample_index(self, batch: int, rng: np.random.Generator) -> np.ndarray:
+        return rng.integers(0, self.size, batch)
+
+    def rows(self, index: np.ndarray) -> dict[str, np.ndarray]:
         return {name: value[index] for name, value in self.fields.items()}
+
+    def sample(self, batch: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        return self.rows(self.sample_index(batch, rng))
+
+    def future(self, index: np.ndarray, horizon: int, rng: np.random.Generator) -> np.ndarray:
+        """For each row, a row ``m`` steps later in its episode, ``m`` uniform in ``[0, horizon)``,
+        or the episode's last linked step if it ends (or the ring lost it) sooner."""
+        index = np.asarray(index)
+        hops = rng.integers(0, horizon, len(index))
+        at = index.copy()
+        successor = self.fields["successor"]
+        for k in range(horizon - 1):
+            go = hops > k
+            if not go.any():
+                break
+            nxt = successor[at]
+            ok = go & (nxt >= 0)
+            ok[ok] = self._follows(at[ok], nxt[ok])
+            at = np.where(ok, nxt, at)
+        return at
 
 
 class SkiLDAgent:
@@ -176,42 +233,59 @@ class SkiLDAgent:
 
     # ---------------------------------------------------------------- learning
 
-    def observe(self, **rows: np.ndarray) -> np.ndarray:
-        """Record transitions (``state, action, next_state, terminated, induced, factor, row, b``);
+    def observe(self, stream: np.ndarray | None = None, episode: np.ndarray | None = None,
+                step: np.ndarray | None = None, **rows: np.ndarray) -> np.ndarray:
+        """Record transitions (``state, action, next_state, terminated, induced, factor, row, b``;
+        with ``stream``, ``episode`` and ``step`` they are linked for hindsight's later steps);
         update the graph history; return each transition's novelty counts ``[B, N]`` (after the update)."""
         if self.mode == "skild":
             self.history.update(rows["induced"])
         counts = self.history.counts(rows["induced"])
-        self.replay.add(counts=counts, **rows)
+        self.replay.add(stream=stream, episode=episode, step=step, counts=counts, **rows)
         return counts
 
-    def rewards(self, batch: dict[str, np.ndarray], features: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
-        """Hindsight-relabelled labels, their log q and eq. 6.2's reward (DIAYN: ``log q + log K``)."""
+    def rewards(self, batch: dict[str, np.ndarray], features: torch.Tensor,
+                achieved: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+        """Hindsight-relabelled labels, their log q and eq. 6.2's reward (DIAYN: ``log q + log K``).
+        ``achieved``: the rows new targets are drawn from (a later step of each sample's episode);
+        by default the samples' own."""
         factor, row = batch["factor"], batch["row"]
         if self.mode == "skild":
-            factor, row, _ = hindsight_relabel(batch["induced"], factor, row, batch["counts"],
+            source = batch if achieved is None else achieved
+            factor, row, _ = hindsight_relabel(source["induced"], factor, row, source["counts"],
                                                self.cfg.relabel_fraction, self.rng)
+        reward, log_q = self.step_reward(batch, features, factor, row)
+        return reward, {"factor": factor, "row": row}, log_q
+
+    def step_reward(self, rows: dict[str, np.ndarray], features: torch.Tensor, factor: np.ndarray,
+                    row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 6.2's reward of replayed steps under the skills ``(factor, row, rows["b"])`` (DIAYN:
+        ``log q + log K``), and ``log q(b | s', G)``; ``features`` are the steps' next states'."""
         with torch.no_grad():
             log_q = self.disc.log_prob(features, torch.as_tensor(factor), torch.as_tensor(row),
-                                       torch.as_tensor(batch["b"])).numpy()
+                                       torch.as_tensor(rows["b"])).numpy()
         if self.mode == "diayn":
-            reward = (log_q + math.log(self.k)).astype(np.float32)
-        else:
-            reward = skill_reward(batch["induced"], factor, row, log_q, self.cfg.diversity_weight)
-        return reward, {"factor": factor, "row": row}, log_q
+            return (log_q + math.log(self.k)).astype(np.float32), log_q
+        return skill_reward(rows["induced"], factor, row, log_q, self.cfg.diversity_weight), log_q
 
     def update(self) -> dict[str, float]:
         """One step of Algorithm 7's lines 13-19 on a replayed batch (discriminator, then skill Q)."""
-        batch = self.replay.sample(self.learner.batch_size, self.rng)
+        index = self.replay.sample_index(self.learner.batch_size, self.rng)
+        batch = self.replay.rows(index)
+        achieved = None
+        if self.mode == "skild" and self.cfg.relabel_horizon > 1:
+            achieved = self.replay.rows(self.replay.future(index, self.cfg.relabel_horizon, self.rng))
         s, s2 = self.features(batch["state"]), self.features(batch["next_state"])
-        reward, labels, _ = self.rewards(batch, s2)
+        reward, labels, _ = self.rewards(batch, s2, achieved)
         factor, row, b = (torch.as_tensor(labels["factor"]), torch.as_tensor(labels["row"]),
                           torch.as_tensor(batch["b"]))
         disc_loss = self._update_discriminator(s2, factor, row, b, batch, labels)
+        ret, last, discount = self._n_step(index, batch, reward, labels)
         with torch.no_grad():
-            best = self.q(s2, factor, row, b).argmax(1, keepdim=True)
-            bootstrap = self.q_target(s2, factor, row, b).gather(1, best).squeeze(1)
-            target = torch.as_tensor(reward) + self.learner.gamma * bootstrap * torch.as_tensor(~batch["terminated"])
+            s_n = self.features(self.replay.fields["next_state"][last])
+            best = self.q(s_n, factor, row, b).argmax(1, keepdim=True)
+            bootstrap = self.q_target(s_n, factor, row, b).gather(1, best).squeeze(1)
+            target = torch.as_tensor(ret) + torch.as_tensor(discount) * bootstrap
         q = self.q(s, factor, row, b).gather(1, torch.as_tensor(batch["action"])[:, None]).squeeze(1)
         loss = F.smooth_l1_loss(q, target)
         self.q_opt.zero_grad()
@@ -222,6 +296,33 @@ class SkiLDAgent:
         if self.updates % self.learner.target_every == 0:
             self.q_target.load_state_dict(self.q.state_dict())
         return {"q_loss": float(loss.detach()), "disc_loss": disc_loss, "reward": float(reward.mean())}
+
+    def _n_step(self, index: np.ndarray, batch: dict[str, np.ndarray], reward: np.ndarray,
+                labels: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ``n_step`` return of each replayed sample under its (relabelled) skill: its reward and
+        those of the next ``n - 1`` steps of its episode, each paid by eq. 6.2 for this sample's
+        skill (as the authors' Rainbow, without an off-policy correction for the later steps' actions).
+        It stops early where the episode terminates (no bootstrap) or its next step is not in the
+        replay (bootstrap there). Returns ``(return, row whose next state bootstraps, discount)``."""
+        gamma = self.learner.gamma
+        ret = reward.astype(np.float64)
+        last = np.asarray(index).copy()
+        alive = ~batch["terminated"]
+        discount = gamma * alive
+        successor = self.replay.fields["successor"]
+        for _ in range(self.learner.n_step - 1):
+            nxt = successor[last]
+            go = alive & (nxt >= 0)
+            go[go] = self.replay._follows(last[go], nxt[go])
+            if not go.any():
+                break
+            rows = self.replay.rows(nxt[go])
+            r, _ = self.step_reward(rows, self.features(rows["next_state"]), labels["factor"][go], labels["row"][go])
+            ret[go] += discount[go] * r
+            last[go] = nxt[go]
+            alive[go] = ~rows["terminated"]
+            discount[go] *= gamma * alive[go]
+        return ret.astype(np.float32), last, discount.astype(np.float32)
 
     def _update_discriminator(self, s2: torch.Tensor, factor: torch.Tensor, row: torch.Tensor, b: torch.Tensor,
                               batch: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> float:

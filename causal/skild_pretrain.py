@@ -14,6 +14,7 @@ uniformly random primitives, for reference.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -67,6 +68,10 @@ class HouseholdBatch:
         self.seed = seed
         self.episodes = 0
         self.states = np.stack([self._reset(e) for e in self.envs])
+        self.episode = np.arange(1, num + 1, dtype=np.int64)
+        """each env's running episode (its reset's number, unique in this batch)"""
+        self.t = np.zeros(num, np.int64)
+        """each env's step index within its running episode"""
 
     def _reset(self, env: Any) -> np.ndarray:
         self.episodes += 1
@@ -86,8 +91,13 @@ class HouseholdBatch:
             obs, rewards[i], terminated[i], truncated, info = env.step(int(a))
             nxt[i], graphs[i], ended[i] = obs, info["local_graph"], terminated[i] or truncated
         after = nxt.copy()
+        if only is None:
+            self.t += 1
+        else:
+            self.t[only] += 1
         for i in np.flatnonzero(ended):
             after[i] = self._reset(self.envs[i])
+            self.episode[i], self.t[i] = self.episodes, 0
         self.states = after
         return nxt, graphs, terminated, ended, after, rewards
 
@@ -105,14 +115,15 @@ def pretrain(run: PretrainConfig, cfg: SkiLDConfig, learner: SkillLearnerConfig,
         done_steps = step * run.num_envs
         epsilon = max(learner.eps_end, learner.eps_start - (learner.eps_start - learner.eps_end)
                       * done_steps / max(learner.eps_decay_steps, 1))
-        states = envs.states
+        states, episode, t = envs.states, envs.episode.copy(), envs.t.copy()
         actions = agent.act(states, skills.factor, skills.row, skills.b, epsilon)
         nxt, graphs, terminated, ended, after, _ = envs.step(actions)
         if learned is not None:
             graphs = learned.step(agent, states, actions, nxt)
         induced = object_graphs(graphs, envs.objects)
         counts = agent.observe(state=states, action=actions, next_state=nxt, terminated=terminated,
-                               induced=induced, factor=skills.factor, row=skills.row, b=skills.b)
+                               induced=induced, factor=skills.factor, row=skills.row, b=skills.b,
+                               stream=np.arange(run.num_envs), episode=episode, step=t)
         skills.advance(novelty_reward(counts), ended, after)
         if agent.replay.size >= learner.learning_starts:
             for _ in range(run.updates_per_step):
@@ -235,6 +246,44 @@ def coverage(agent: SkiLDAgent | None, env: str, episodes: int, episode_length: 
         for key in episode:
             counts[key] = counts.get(key, 0) + 1
     return {key: c / episodes for key, c in counts.items()}
+
+
+def target_hit_rates(agent: SkiLDAgent, env: str, segments: int, seed: int, skill_steps: int = 20,
+                     num_envs: int = 16, epsilon: float = 0.05, warmup: int = 30) -> list[dict[str, Any]]:
+    """Per target of the agent's history: the share of ``skill_steps``-step segments that induce it, run
+    by the skill ``(G, b)`` (greedy with ``epsilon``, ``b`` uniform) and by uniformly random actions from
+    the *same* start states (copies of the same envs), ``segments`` of each. Start states: each round
+    first takes up to ``warmup`` random steps. A segment stops counting once its episode ends.
+
+    Whether a learned skill reaches its target more often than chance is the low level's own test;
+    Fig. 6.4's coverage mixes it with how the targets are drawn."""
+    envs = HouseholdBatch(env, num_envs, 0, seed)
+    rng = np.random.default_rng(seed)
+    objects = object_names(envs.objects)
+    factors, rows = agent.history.target_arrays(len(objects) + 1)
+    out = []
+    for t in range(len(factors)):
+        factor, row = np.full(num_envs, factors[t]), np.repeat(rows[t][None], num_envs, axis=0)
+        hits, total = {"skill": 0, "random": 0}, 0
+        while total < segments:
+            for _ in range(int(rng.integers(0, warmup + 1))):
+                envs.step(rng.integers(0, envs.actions, num_envs))
+            start, b = copy.deepcopy(envs), rng.integers(0, agent.k, num_envs)
+            for policy in ("skill", "random"):
+                run = copy.deepcopy(start)
+                alive, got = np.ones(num_envs, bool), np.zeros(num_envs, bool)
+                for _ in range(skill_steps):
+                    actions = (agent.act(run.states, factor, row, b, epsilon) if policy == "skill"
+                               else rng.integers(0, run.actions, num_envs))
+                    _, graphs, _, ended, _, _ = run.step(actions)
+                    got |= alive & graph_matches(object_graphs(graphs, run.objects), factor, row)
+                    alive &= ~ended
+                hits[policy] += int(got.sum())
+            envs, total = run, total + num_envs
+        key = int(row_keys(rows[t][None, None])[0, 0])
+        out.append({"target": describe_row(int(factors[t]), key, objects), "segments": total,
+                    "skill": hits["skill"] / total, "random": hits["random"] / total})
+    return out
 
 
 def describe_row(factor: int, key: int, objects: tuple[str, ...]) -> str:

@@ -22,6 +22,7 @@ least once.
 from __future__ import annotations
 
 import copy
+import zlib
 from collections import Counter
 from dataclasses import replace
 
@@ -213,7 +214,9 @@ class SkildLearnerCore:
         factor, row = self._labels(message.slot)
         counts = self.agent.observe(state=batch.state.astype(np.int64), action=batch.action[:, 0].astype(np.int64),
                                     next_state=batch.next_state.astype(np.int64), terminated=batch.terminated,
-                                    induced=induced, factor=factor, row=row, b=message.b.astype(np.int64))
+                                    induced=induced, factor=factor, row=row, b=message.b.astype(np.int64),
+                                    stream=np.full(len(batch), zlib.crc32(batch.worker_id.encode())),
+                                    episode=batch.episode_id, step=batch.step.astype(np.int64))
         self.pretrain_steps += len(batch)
         if self.version - batch.policy_version <= self.cfg.max_policy_lag:
             option = np.where(message.started & (message.slot >= 0), message.slot, -1).astype(np.int32)

@@ -136,3 +136,5 @@ def test_config_refuses_bad_values():
         SkiLDConfig(relabel_fraction=1.5)
     with pytest.raises(ValueError, match="diversity_k"):
         SkiLDConfig(diversity_k=0)
+    with pytest.raises(ValueError, match="relabel_horizon"):
+        SkiLDConfig(relabel_horizon=0)

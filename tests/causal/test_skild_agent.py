@@ -9,8 +9,8 @@ import torch
 
 from causal.methods import get_method, model_from_config_json
 from causal.skild import SkiLDConfig, graph_matches
-from causal.skild_agent import SkillLearnerConfig, one_hot_states
-from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain
+from causal.skild_agent import SkillLearnerConfig, SkillReplay, one_hot_states
+from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain, target_hit_rates
 
 torch.set_num_threads(1)
 
@@ -46,6 +46,127 @@ def test_replayed_rewards_pay_exactly_the_induced_targets(trained):
     np.testing.assert_array_equal(reward[~match], 0.0)
     np.testing.assert_allclose(reward[match], 1 + 0.5 * np.maximum(log_q[match], -2.0), rtol=1e-5)
     assert match.mean() > 0.8  # 7/8 relabelled to what they induced, plus the skills that succeeded
+
+
+def _replay_rows(count: int, n: int = 2) -> dict[str, np.ndarray]:
+    return {"state": np.zeros((count, 3), int), "action": np.zeros(count, int), "next_state": np.zeros((count, 3), int),
+            "terminated": np.zeros(count, bool), "induced": np.zeros((count, n, n + 1), bool),
+            "factor": np.zeros(count, int), "row": np.zeros((count, n + 1), bool), "b": np.zeros(count, int),
+            "counts": np.ones((count, n), int)}
+
+
+def test_the_replay_links_each_step_to_the_next_of_its_episode_only():
+    replay = SkillReplay(capacity=64, state_dim=3, num_factors=2)
+    # two envs stepped together (one row each per add), env 1's episode ends after its step 2
+    for t in range(5):
+        replay.add(stream=np.array([0, 1]), episode=np.array([1, 2 if t < 3 else 3]),
+                   step=np.array([t, t if t < 3 else t - 3]), **_replay_rows(2))
+    # a worker's batch: one stream, consecutive steps in one add
+    replay.add(stream=np.full(4, 7), episode=np.full(4, 5), step=np.arange(4), **_replay_rows(4))
+    successor = replay.fields["successor"][: replay.size]
+    np.testing.assert_array_equal(successor[0:10:2], [2, 4, 6, 8, -1])  # env 0: one episode
+    np.testing.assert_array_equal(successor[1:10:2], [3, 5, -1, 9, -1])  # env 1: a new episode at t = 3
+    np.testing.assert_array_equal(successor[10:14], [11, 12, 13, -1])
+    rng = np.random.default_rng(0)
+    start = np.repeat(np.arange(14), 200)
+    later = replay.future(start, horizon=4, rng=rng)
+    f = replay.fields
+    same = (f["stream"][later] == f["stream"][start]) & (f["episode"][later] == f["episode"][start])
+    assert same.all()
+    hops = f["step"][later] - f["step"][start]
+    assert hops.min() == 0 and hops.max() == 3
+    # env 0's step 0 has 4 later steps in reach: the hop is uniform over 0..3
+    np.testing.assert_allclose(np.bincount(hops[start == 0], minlength=4) / 200, 0.25, atol=0.08)
+    # env 1's step 2 ends its episode: it can only stay
+    assert (later[start == 5] == 5).all()
+    # rows added without episodes are never linked
+    replay.add(**_replay_rows(2))
+    assert (replay.future(np.array([14, 15]), 4, rng) == [14, 15]).all()
+
+
+def test_rows_the_ring_overwrites_drop_their_links():
+    replay = SkillReplay(capacity=4, state_dim=3, num_factors=2)
+    replay.add(stream=np.zeros(3, int), episode=np.zeros(3, int), step=np.arange(3), **_replay_rows(3))
+    assert replay.fields["successor"][0] == 1 and replay.fields["successor"][1] == 2
+    replay.add(stream=np.full(2, 1), episode=np.full(2, 9), step=np.arange(2), **_replay_rows(2))  # overwrites 3, 0
+    np.testing.assert_array_equal(replay.fields["successor"], [-1, 2, -1, 0])
+    replay.add(stream=np.full(2, 1), episode=np.full(2, 9), step=np.arange(2, 4), **_replay_rows(2))  # 1, 2
+    # row 0 (stream 1, step 1) links to row 1 (step 2); the old row 1 -> 2 link now joins stream 1's steps 2, 3
+    later = replay.future(np.full(100, 3), horizon=3, rng=np.random.default_rng(1))
+    assert set(replay.fields["step"][later].tolist()) <= {0, 1, 2}
+    assert (replay.fields["stream"][later] == 1).all()
+
+
+def test_future_hindsight_targets_come_from_later_steps_and_pay_only_where_induced():
+    """A rare row induced only at each episode's last step: with the future strategy, earlier steps are
+    relabelled to it too, unpaid (they did not induce it); paid exactly where their own graph matches."""
+    cfg, n = SkiLDConfig(relabel_horizon=5, relabel_fraction=1.0), 2
+    from causal.skild_agent import SkiLDAgent
+    agent = SkiLDAgent((3, 3, 3), n, 4, cfg, SkillLearnerConfig(batch_size=64), seed=0)
+    rows = _replay_rows(40, n)
+    rows["induced"][:, np.arange(n), np.arange(n)] = True
+    last = np.arange(40) % 5 == 4
+    rows["induced"][last, 1, 0] = True  # object 1 depends on object 0, only at the episode's last step
+    rows["counts"][:] = 1000
+    rows["counts"][last, 1] = 1  # rare: relabelling prefers it
+    agent.replay.add(stream=np.zeros(40, int), episode=np.arange(40) // 5, step=np.arange(40) % 5, **rows)
+    rng = np.random.default_rng(0)
+    index = agent.replay.sample_index(4000, rng)
+    achieved = agent.replay.rows(agent.replay.future(index, cfg.relabel_horizon, rng))
+    batch = agent.replay.rows(index)
+    reward, labels, log_q = agent.rewards(batch, agent.features(batch["next_state"]), achieved)
+    rare = labels["row"][:, 0] & (labels["factor"] == 1)
+    assert rare[~last[index]].mean() > 0.3  # earlier steps take the later, rare row as their target
+    match = graph_matches(batch["induced"], labels["factor"], labels["row"])
+    assert not match[rare & ~last[index]].any()
+    np.testing.assert_array_equal(reward[~match], 0.0)
+    np.testing.assert_allclose(reward[match], 1 + 0.5 * np.maximum(log_q[match], -2.0), rtol=1e-5)
+
+
+def test_n_step_returns_sum_the_episode_s_next_rewards_for_the_sample_s_skill():
+    from causal.skild_agent import SkiLDAgent
+    n, gamma = 2, 0.5
+    agent = SkiLDAgent((3, 3, 3), n, 4, SkiLDConfig(relabel_fraction=0.0, diversity_weight=0.0),
+                       SkillLearnerConfig(gamma=gamma, n_step=3), seed=0)
+    rows = _replay_rows(8, n)
+    rows["induced"][:, np.arange(n), np.arange(n)] = True
+    target = np.array([True, True, False])  # object 1 depends on object 0
+    rows["factor"][:], rows["row"][:] = 1, target
+    rows["induced"][[1, 2, 4], 1, 0] = True  # induced at steps 1, 2 and 4
+    rows["terminated"][4] = True  # episode 0 ends at its step 4; episode 1 has rows 5-7
+    agent.replay.add(stream=np.zeros(8, int), episode=np.array([0] * 5 + [1] * 3), step=np.array([0, 1, 2, 3, 4, 0, 1, 2]),
+                     **rows)
+    index = np.arange(8)
+    batch = agent.replay.rows(index)
+    reward, labels, _ = agent.rewards(batch, agent.features(batch["next_state"]))
+    np.testing.assert_array_equal(reward, [0, 1, 1, 0, 1, 0, 0, 0])
+    ret, last, discount = agent._n_step(index, batch, reward, labels)
+    np.testing.assert_allclose(ret, [0 + 0.5 + 0.25, 1 + 0.5, 1 + 0.25, 0.5, 1, 0, 0, 0])
+    np.testing.assert_array_equal(last, [2, 3, 4, 4, 4, 7, 7, 7])
+    # bootstrap after 3 steps; none past the terminal step; the newest rows bootstrap where the replay ends
+    np.testing.assert_allclose(discount, [0.125, 0.125, 0, 0, 0, 0.125, 0.25, 0.5])
+
+
+def test_the_learner_refuses_an_n_step_below_one():
+    with pytest.raises(ValueError, match="n_step"):
+        SkillLearnerConfig(n_step=0)
+
+
+def test_target_hit_rates_compare_each_skill_with_random_actions_from_the_same_states(trained):
+    agent, _ = trained
+    rates = target_hit_rates(agent, "installing-printer", segments=8, seed=1, skill_steps=5, num_envs=4)
+    assert [r["target"] for r in rates] == [describe_row(int(f), int(k), ("agent", "table", "printer"))
+                                             for f, k in zip(*_target_keys(agent))]
+    assert all(r["segments"] == 8 and 0 <= r["skill"] <= 1 and 0 <= r["random"] <= 1 for r in rates)
+    # the table never moves: its self-only row is induced on every step, whatever the policy
+    table = [r for r in rates if r["target"] == "table -> table"]
+    assert table and table[0]["skill"] == table[0]["random"] == 1.0
+
+
+def _target_keys(agent):
+    from causal.skild import row_keys
+    factors, rows = agent.history.target_arrays(4)
+    return factors, row_keys(rows[:, None])[:, 0]
 
 
 def test_random_skill_coverage_counts_episodes(trained):

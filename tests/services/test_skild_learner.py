@@ -56,6 +56,14 @@ def test_pretrain_then_task_through_real_messages(tmp_path) -> None:
             _hand_over(learner, worker)
     progress = learner.progress()
     assert learner.phase == "task" and worker.skild.phase == "task"
+    # the replay links each of the worker's steps to the next of its episode, across batches (hindsight's
+    # later steps), and never across episodes
+    f, size = learner.agent.replay.fields, learner.agent.replay.size
+    linked = np.flatnonzero(f["successor"][:size] >= 0)
+    assert len(linked) >= size - 1 - f["terminated"][:size].sum() - size // 100
+    nxt = f["successor"][linked]
+    np.testing.assert_array_equal(f["episode"][nxt], f["episode"][linked])
+    np.testing.assert_array_equal(f["step"][nxt], f["step"][linked] + 1)
     assert learner.pretrain_steps >= 256 and learner.task_steps > 0
     assert learner.updates >= 0.25 * (256 - 128) and learner.task_updates >= 1
     assert progress["targets"] >= 1 and progress["coverage_episodes_pretrain"] >= 1
