@@ -14,6 +14,7 @@ the low level's own test. One thread; the budget (env steps, updates, wall secon
     python -m benchmarks.skild_coverage [--env installing-printer] [--action-mode primitives|grid] [--env-steps 100000] [--seeds 0 1 2]
         [--episodes 500] [--episode-length 0] [--out runs/skild-coverage] [--graphs true|pcmi]
         [--methods skild diayn random] [--updates-per-step 1] [--eps-decay-steps 40000] [--diversity-weight 0.5] [--relabel-horizon 1] [--n-step 1]
+        [--relabel-random 0] [--skill-hidden 128]
         [--target-segments 160]
 
 ``--graphs pcmi`` pre-trains SkiLD on the point-wise CMI graphs of a CDL model trained on the run's
@@ -126,14 +127,15 @@ def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_leng
     name = env if graphs == "true" else f"{env}-{graphs}"
     (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
                                                  "updates_per_step": updates_per_step,
-                                                 "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step,
-                                                 "diversity_weight": cfg.diversity_weight, "relabel_horizon": cfg.relabel_horizon,
+                                                 "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step, "skill_hidden": learner.hidden,
+                                                 "diversity_weight": cfg.diversity_weight, "relabel_horizon": cfg.relabel_horizon, "relabel_random": cfg.relabel_random,
                                                  "episodes": episodes, "episode_length": episode_length,
                                                  "wall_s": time.time() - wall, "budget": budget, "table": lines},
                                                 indent=1))
     (out / f"{name}.md").write_text(text)
     print(text)
-    print(f"budget: {env_steps} env steps per method and seed; {budget}; wall {time.time() - wall:.0f} s")
+    brief = {m: {k: v for k, v in b.items() if k != "target_rates"} for m, b in budget.items()}
+    print(f"budget: {env_steps} env steps per method and seed; {brief}; wall {time.time() - wall:.0f} s")
 
 
 if __name__ == "__main__":
@@ -158,6 +160,10 @@ if __name__ == "__main__":
     parser.add_argument("--target-segments", type=int, default=160,
                         help="per SkiLD target, skill segments (and as many of random actions from the same "
                              "start states) run to measure how often each induces it (0: skip)")
+    parser.add_argument("--skill-hidden", type=int, default=SkillLearnerConfig().hidden,
+                        help="hidden width of the skill Q-network's trunk (SkiLD's and DIAYN's)")
+    parser.add_argument("--relabel-random", type=float, default=SkiLDConfig().relabel_random,
+                        help="share of replayed samples given a target drawn uniformly from the history's targets")
     parser.add_argument("--n-step", type=int, default=SkillLearnerConfig().n_step,
                         help="steps of reward the skill Q-learner sums before bootstrapping (the authors: 3)")
     parser.add_argument("--relabel-horizon", type=int, default=SkiLDConfig().relabel_horizon,
@@ -167,6 +173,8 @@ if __name__ == "__main__":
     if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
         args.env = f"{args.env}-{args.action_mode}"
     main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out, args.graphs,
-         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step), args.updates_per_step,
-         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon),
+         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step,
+                            hidden=args.skill_hidden), args.updates_per_step,
+         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon,
+                     relabel_random=args.relabel_random),
          args.target_segments)

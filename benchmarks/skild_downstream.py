@@ -10,6 +10,7 @@ last quarter of updates). One thread; budgets (env steps, CPU seconds) are print
     python -m benchmarks.skild_downstream [--env installing-printer] [--action-mode primitives|grid] [--task ""] [--pretrain-steps 30000]
         [--task-steps 30000] [--seeds 0 1 2] [--episode-length 0] [--out runs/skild-downstream]
         [--end-on-target] [--updates-per-step 1] [--eps-decay-steps 40000] [--diversity-weight 0.5] [--relabel-horizon 1] [--n-step 1]
+        [--relabel-random 0] [--skill-hidden 128]
 """
 from __future__ import annotations
 
@@ -89,8 +90,8 @@ def main(env: str, task: str, pretrain_steps: int, task_steps: int, seeds: list[
                                                   "episode_length": episode_length,
                                                   "end_on_target": end_on_target,
                                                   "updates_per_step": updates_per_step,
-                                                  "diversity_weight": cfg.diversity_weight, "relabel_horizon": cfg.relabel_horizon,
-                                                  "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step, "wall_s": time.time() - wall,
+                                                  "diversity_weight": cfg.diversity_weight, "relabel_horizon": cfg.relabel_horizon, "relabel_random": cfg.relabel_random,
+                                                  "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step, "skill_hidden": learner.hidden, "wall_s": time.time() - wall,
                                                   "results": results}, indent=1))
     (out / f"{name}.md").write_text(text)
     print(text)
@@ -117,6 +118,10 @@ if __name__ == "__main__":
     parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
     parser.add_argument("--diversity-weight", type=float, default=SkiLDConfig().diversity_weight,
                         help="lambda_b of SkiLD's diversity reward (0: Fig. 6.6's 'without diversity')")
+    parser.add_argument("--skill-hidden", type=int, default=SkillLearnerConfig().hidden,
+                        help="hidden width of the skill Q-network's trunk (SkiLD's and DIAYN's)")
+    parser.add_argument("--relabel-random", type=float, default=SkiLDConfig().relabel_random,
+                        help="share of replayed samples given a target drawn uniformly from the history's targets")
     parser.add_argument("--n-step", type=int, default=SkillLearnerConfig().n_step,
                         help="steps of reward the skill Q-learner sums before bootstrapping (the authors: 3)")
     parser.add_argument("--relabel-horizon", type=int, default=SkiLDConfig().relabel_horizon,
@@ -126,5 +131,7 @@ if __name__ == "__main__":
     if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
         args.env = f"{args.env}-{args.action_mode}"
     main(args.env, args.task, args.pretrain_steps, args.task_steps, args.seeds, args.episode_length, args.out,
-         args.end_on_target, SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step), args.updates_per_step,
-         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon))
+         args.end_on_target, SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step,
+                            hidden=args.skill_hidden), args.updates_per_step,
+         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon,
+                     relabel_random=args.relabel_random))

@@ -48,6 +48,9 @@ class SkiLDConfig:
     relabel_horizon: int = doc(1, "hindsight targets come from the graph induced at the replayed step or up to this "
                                   "many steps minus one later in its episode (HER's 'future' strategy, e.g. L = 20); "
                                   "1 (the default): the replayed step's own graph only")
+    relabel_random: float = doc(0.0, "share of replayed samples given a target drawn uniformly from the history's "
+                                     "targets instead (HER's 'random' strategy), paid by what their own step induced: "
+                                     "the unpaid samples every target needs")
     discriminator_hidden: int = doc(64, "hidden width of the diversity discriminator q")
     discriminator_lr: float = doc(1e-3, "Adam learning rate of the diversity discriminator")
 
@@ -58,6 +61,8 @@ class SkiLDConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.relabel_fraction <= 1.0:
             raise ValueError(f"relabel_fraction must be in [0, 1], got {self.relabel_fraction}")
+        if not 0.0 <= self.relabel_random <= 1.0:
+            raise ValueError(f"relabel_random must be in [0, 1], got {self.relabel_random}")
         if not (math.isfinite(self.diversity_weight) and self.diversity_weight >= 0):
             raise ValueError(f"diversity_weight must be a finite number >= 0, got {self.diversity_weight}")
         if not (math.isfinite(self.discriminator_lr) and self.discriminator_lr > 0):

@@ -55,6 +55,8 @@ class SkillLearnerConfig:
     diayn_k: int = doc(8, "skills of the DIAYN baseline (mode diayn)")
     n_step: int = doc(1, "steps of reward summed before bootstrapping (the authors' Rainbow: 3); the later "
                          "steps are paid for the replayed sample's skill, without an off-policy correction")
+    end_on_target: bool = doc(False, "a step that induces the skill's target ends its return (no bootstrap past "
+                                     "it): the Q-values then measure how soon the target is reached")
 
     def __post_init__(self) -> None:
         if self.n_step < 1:
@@ -254,8 +256,18 @@ class SkiLDAgent:
             source = batch if achieved is None else achieved
             factor, row, _ = hindsight_relabel(source["induced"], factor, row, source["counts"],
                                                self.cfg.relabel_fraction, self.rng)
+            if self.cfg.relabel_random > 0 and len(self.history.targets):
+                factor, row = self._random_targets(factor, row)
         reward, log_q = self.step_reward(batch, features, factor, row)
         return reward, {"factor": factor, "row": row}, log_q
+
+    def _random_targets(self, factor: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``relabel_random`` of the samples get a target drawn uniformly from the history's."""
+        drawn = self.rng.random(len(factor)) < self.cfg.relabel_random
+        factors, rows = self.history.target_arrays(self.n + 1)
+        pick = self.rng.integers(0, len(factors), len(factor))
+        return (np.where(drawn, factors[pick], factor).astype(np.int64),
+                np.where(drawn[:, None], rows[pick], row))
 
     def step_reward(self, rows: dict[str, np.ndarray], features: torch.Tensor, factor: np.ndarray,
                     row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -307,7 +319,7 @@ class SkiLDAgent:
         gamma = self.learner.gamma
         ret = reward.astype(np.float64)
         last = np.asarray(index).copy()
-        alive = ~batch["terminated"]
+        alive = ~batch["terminated"] & ~self._ends(batch, labels["factor"], labels["row"])
         discount = gamma * alive
         successor = self.replay.fields["successor"]
         for _ in range(self.learner.n_step - 1):
@@ -320,9 +332,15 @@ class SkiLDAgent:
             r, _ = self.step_reward(rows, self.features(rows["next_state"]), labels["factor"][go], labels["row"][go])
             ret[go] += discount[go] * r
             last[go] = nxt[go]
-            alive[go] = ~rows["terminated"]
+            alive[go] = ~rows["terminated"] & ~self._ends(rows, labels["factor"][go], labels["row"][go])
             discount[go] *= gamma * alive[go]
         return ret.astype(np.float32), last, discount.astype(np.float32)
+
+    def _ends(self, rows: dict[str, np.ndarray], factor: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """Steps where the skill's return ends on its target (``end_on_target``, SkiLD only)."""
+        if self.mode != "skild" or not self.learner.end_on_target:
+            return np.zeros(len(factor), bool)
+        return graph_matches(rows["induced"], factor, row)
 
     def _update_discriminator(self, s2: torch.Tensor, factor: torch.Tensor, row: torch.Tensor, b: torch.Tensor,
                               batch: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> float:

@@ -138,3 +138,5 @@ def test_config_refuses_bad_values():
         SkiLDConfig(diversity_k=0)
     with pytest.raises(ValueError, match="relabel_horizon"):
         SkiLDConfig(relabel_horizon=0)
+    with pytest.raises(ValueError, match="relabel_random"):
+        SkiLDConfig(relabel_random=-0.1)

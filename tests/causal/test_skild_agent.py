@@ -147,6 +147,49 @@ def test_n_step_returns_sum_the_episode_s_next_rewards_for_the_sample_s_skill():
     np.testing.assert_allclose(discount, [0.125, 0.125, 0, 0, 0, 0.125, 0.25, 0.5])
 
 
+def test_ending_on_the_target_stops_the_return_where_the_skill_first_induces_it():
+    from causal.skild_agent import SkiLDAgent
+    n = 2
+    agent = SkiLDAgent((3, 3, 3), n, 4, SkiLDConfig(relabel_fraction=0.0, diversity_weight=0.0),
+                       SkillLearnerConfig(gamma=0.5, n_step=3, end_on_target=True), seed=0)
+    rows = _replay_rows(5, n)
+    rows["induced"][:, np.arange(n), np.arange(n)] = True
+    rows["factor"][:], rows["row"][:] = 1, np.array([True, True, False])
+    rows["induced"][[1, 2], 1, 0] = True
+    agent.replay.add(stream=np.zeros(5, int), episode=np.zeros(5, int), step=np.arange(5), **rows)
+    index = np.arange(5)
+    batch = agent.replay.rows(index)
+    reward, labels, _ = agent.rewards(batch, agent.features(batch["next_state"]))
+    ret, last, discount = agent._n_step(index, batch, reward, labels)
+    np.testing.assert_allclose(ret, [0.5, 1, 1, 0, 0])
+    np.testing.assert_array_equal(last, [1, 1, 2, 4, 4])
+    np.testing.assert_allclose(discount, [0, 0, 0, 0.25, 0.5])  # rows 3-4 bootstrap where the replay ends
+
+
+def test_random_targets_come_uniformly_from_the_history_and_are_paid_only_where_induced():
+    from causal.skild_agent import SkiLDAgent
+    n = 2
+    agent = SkiLDAgent((3, 3, 3), n, 4, SkiLDConfig(relabel_fraction=0.0, relabel_random=0.5),
+                       SkillLearnerConfig(), seed=0)
+    agent.history.targets.extend([(0, 0b100), (1, 0b010), (1, 0b110)])  # keys: self-only rows and 0 -> 1
+    rows = _replay_rows(4000, n)
+    rows["induced"][:, np.arange(n), np.arange(n)] = True
+    rows["induced"][::2, 1, 0] = True
+    rows["factor"][:], rows["row"][:] = 0, np.array([True, False, True])  # a label no target has
+    agent.replay.add(**rows)
+    batch = agent.replay.rows(np.arange(4000))
+    reward, labels, log_q = agent.rewards(batch, agent.features(batch["next_state"]))
+    factors, target_rows = agent.history.target_arrays(n + 1)
+    drawn = ~((labels["factor"] == 0) & (labels["row"] == [True, False, True]).all(1))
+    assert drawn.mean() == pytest.approx(0.5, abs=0.03)
+    which = [np.flatnonzero((factors == f) & (target_rows == r).all(1)) for f, r in
+             zip(labels["factor"][drawn], labels["row"][drawn])]
+    assert all(len(w) == 1 for w in which)
+    np.testing.assert_allclose(np.bincount(np.concatenate(which), minlength=3) / drawn.sum(), 1 / 3, atol=0.04)
+    match = graph_matches(batch["induced"], labels["factor"], labels["row"])
+    np.testing.assert_array_equal(reward > 0, match)
+
+
 def test_the_learner_refuses_an_n_step_below_one():
     with pytest.raises(ValueError, match="n_step"):
         SkillLearnerConfig(n_step=0)
