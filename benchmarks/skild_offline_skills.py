@@ -110,8 +110,9 @@ def markdown(results: dict[str, dict], names: list[str], shares: dict[str, float
     """One row per target: the share of the replay's transitions that induce it, each variant's share
     of skill segments that induce it, and random actions'."""
     variants = list(results)
-    reference = next((results[v]["rates"] for v in variants if v != "one-target"), None)
-    random = {r["target"]: r["random"] for r in reference} if reference else {}
+    random: dict[str, float] = {}
+    for v in sorted(variants, key=lambda v: v != "one-target"):  # other variants' start states win
+        random.update({r["target"]: r["random"] for r in results[v]["rates"]})
     shares = shares or {}
     head = ("| target | share of the replay | " + " | ".join(variants) + " | random actions |\n|---|---|"
             + "---|" * (len(variants) + 1) + "\n")
