@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from causal.skild import SkiLDConfig, object_names
+from benchmarks.skild_args import add_learner_arguments, learner_configs
 from causal.skild_agent import SkillLearnerConfig
 from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain, target_hit_rates
 
@@ -154,27 +155,13 @@ if __name__ == "__main__":
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     parser.add_argument("--updates-per-step", type=int, default=1,
                         help="skill-policy updates per batched env step (16 transitions)")
-    parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
-    parser.add_argument("--diversity-weight", type=float, default=SkiLDConfig().diversity_weight,
-                        help="lambda_b of SkiLD's diversity reward (0: Fig. 6.6's 'without diversity')")
     parser.add_argument("--target-segments", type=int, default=160,
                         help="per SkiLD target, skill segments (and as many of random actions from the same "
                              "start states) run to measure how often each induces it (0: skip)")
-    parser.add_argument("--skill-hidden", type=int, default=SkillLearnerConfig().hidden,
-                        help="hidden width of the skill Q-network's trunk (SkiLD's and DIAYN's)")
-    parser.add_argument("--relabel-random", type=float, default=SkiLDConfig().relabel_random,
-                        help="share of replayed samples given a target drawn uniformly from the history's targets")
-    parser.add_argument("--n-step", type=int, default=SkillLearnerConfig().n_step,
-                        help="steps of reward the skill Q-learner sums before bootstrapping (the authors: 3)")
-    parser.add_argument("--relabel-horizon", type=int, default=SkiLDConfig().relabel_horizon,
-                        help="hindsight targets from the replayed step or up to this many steps minus one later "
-                             "in its episode (1, the default: the replayed step's own graph only; 20 = L: HER's future strategy)")
+    add_learner_arguments(parser)
     args = parser.parse_args()
     if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
         args.env = f"{args.env}-{args.action_mode}"
+    learner, cfg = learner_configs(args, parser)
     main(args.env, args.env_steps, args.seeds, args.episodes, args.episode_length, args.out, args.graphs,
-         tuple(args.methods), SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step,
-                            hidden=args.skill_hidden), args.updates_per_step,
-         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon,
-                     relabel_random=args.relabel_random),
-         args.target_segments)
+         tuple(args.methods), learner, args.updates_per_step, cfg, args.target_segments)

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from causal.skild import SkiLDConfig
+from benchmarks.skild_args import add_learner_arguments, learner_configs
 from causal.skild_agent import SkillLearnerConfig
 from causal.skild_pretrain import PretrainConfig, pretrain
 from causal.skild_task import TaskConfig, train_task
@@ -115,23 +116,10 @@ if __name__ == "__main__":
                         help="a SkiLD skill also ends when it induces its target (the chapter: L steps always)")
     parser.add_argument("--updates-per-step", type=int, default=1,
                         help="skill-policy updates per batched env step of pre-training (16 transitions)")
-    parser.add_argument("--eps-decay-steps", type=int, default=40_000, help="env steps of epsilon's linear decay")
-    parser.add_argument("--diversity-weight", type=float, default=SkiLDConfig().diversity_weight,
-                        help="lambda_b of SkiLD's diversity reward (0: Fig. 6.6's 'without diversity')")
-    parser.add_argument("--skill-hidden", type=int, default=SkillLearnerConfig().hidden,
-                        help="hidden width of the skill Q-network's trunk (SkiLD's and DIAYN's)")
-    parser.add_argument("--relabel-random", type=float, default=SkiLDConfig().relabel_random,
-                        help="share of replayed samples given a target drawn uniformly from the history's targets")
-    parser.add_argument("--n-step", type=int, default=SkillLearnerConfig().n_step,
-                        help="steps of reward the skill Q-learner sums before bootstrapping (the authors: 3)")
-    parser.add_argument("--relabel-horizon", type=int, default=SkiLDConfig().relabel_horizon,
-                        help="hindsight targets from the replayed step or up to this many steps minus one later "
-                             "in its episode (1, the default: the replayed step's own graph only; 20 = L: HER's future strategy)")
+    add_learner_arguments(parser)
     args = parser.parse_args()
     if args.action_mode != "primitives" and not args.env.endswith(f"-{args.action_mode}"):
         args.env = f"{args.env}-{args.action_mode}"
+    learner, cfg = learner_configs(args, parser)
     main(args.env, args.task, args.pretrain_steps, args.task_steps, args.seeds, args.episode_length, args.out,
-         args.end_on_target, SkillLearnerConfig(eps_decay_steps=args.eps_decay_steps, n_step=args.n_step,
-                            hidden=args.skill_hidden), args.updates_per_step,
-         SkiLDConfig(diversity_weight=args.diversity_weight, relabel_horizon=args.relabel_horizon,
-                     relabel_random=args.relabel_random))
+         args.end_on_target, learner, args.updates_per_step, cfg)
