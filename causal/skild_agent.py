@@ -141,13 +141,13 @@ class SkillReplay:
             f["stream"][index], f["episode"][index], f["step"][index] = stream, episode, step
             for position, key in zip(index.tolist(), np.asarray(stream).tolist()):
                 last = self._last.get(key)
-                if last is not None and self._follows(last, position):
+                if last is not None and self.follows(last, position):
                     f["successor"][last] = position
                 self._last[key] = position
         self.next = (self.next + count) % self.capacity
         self.size = min(self.size + count, self.capacity)
 
-    def _follows(self, before, after) -> np.ndarray:
+    def follows(self, before: np.ndarray | int, after: np.ndarray | int) -> np.ndarray:
         """Whether row ``after`` holds the step right after row ``before``'s, in the same episode."""
         f = self.fields
         return ((f["stream"][after] == f["stream"][before]) & (f["stream"][after] >= 0)
@@ -175,7 +175,7 @@ class SkillReplay:
                 break
             nxt = successor[at]
             ok = go & (nxt >= 0)
-            ok[ok] = self._follows(at[ok], nxt[ok])
+            ok[ok] = self.follows(at[ok], nxt[ok])
             at = np.where(ok, nxt, at)
         return at
 
@@ -325,7 +325,7 @@ class SkiLDAgent:
         for _ in range(self.learner.n_step - 1):
             nxt = successor[last]
             go = alive & (nxt >= 0)
-            go[go] = self.replay._follows(last[go], nxt[go])
+            go[go] = self.replay.follows(last[go], nxt[go])
             if not go.any():
                 break
             rows = self.replay.rows(nxt[go])
