@@ -147,6 +147,15 @@ class SkillReplay:
         self.next = (self.next + count) % self.capacity
         self.size = min(self.size + count, self.capacity)
 
+    def restore_links(self) -> None:
+        """After the fields were loaded (a checkpoint): each stream's newest row again takes the next
+        row added for that stream as its successor, so episodes running across a restart stay linked."""
+        order = np.arange(self.size) if self.size < self.capacity else (self.next + np.arange(self.size)) % self.capacity
+        streams = self.fields["stream"][order][::-1]
+        keys, first = np.unique(streams, return_index=True)
+        newest = order[::-1][first]
+        self._last = {int(k): int(p) for k, p in zip(keys, newest) if k >= 0}
+
     def follows(self, before: np.ndarray | int, after: np.ndarray | int) -> np.ndarray:
         """Whether row ``after`` holds the step right after row ``before``'s, in the same episode."""
         f = self.fields

@@ -374,6 +374,7 @@ class SkildLearnerCore:
         for name, value in saved["replay"].items():
             a.replay.fields[name][:size] = value.numpy()
         a.replay.size, a.replay.next, a.updates = size, int(saved["replay_next"]), int(saved["agent_updates"])
+        a.replay.restore_links()
         self.coverage.load_state_dict(saved["coverage"])
         for name in ("version", "updates", "task_updates", "pretrain_steps", "task_steps"):
             setattr(self, name, int(saved[name]))

@@ -97,6 +97,19 @@ def test_rows_the_ring_overwrites_drop_their_links():
     assert (replay.fields["stream"][later] == 1).all()
 
 
+def test_restored_links_continue_each_stream_from_its_newest_row_in_a_wrapped_ring():
+    replay = SkillReplay(capacity=4, state_dim=3, num_factors=2)
+    for t in range(3):  # two streams, 6 rows in a ring of 4: stream 0's newest is row 0, stream 1's row 1
+        replay.add(stream=np.array([0, 1]), episode=np.array([5, 6]), step=np.array([t, t]), **_replay_rows(2))
+    copy = SkillReplay(capacity=4, state_dim=3, num_factors=2)
+    copy.fields = {k: v.copy() for k, v in replay.fields.items()}
+    copy.size, copy.next = replay.size, replay.next
+    copy.restore_links()
+    assert copy._last == {0: 0, 1: 1}
+    copy.add(stream=np.array([1, 0]), episode=np.array([6, 5]), step=np.array([3, 3]), **_replay_rows(2))  # rows 2, 3
+    assert copy.fields["successor"][1] == 2 and copy.fields["successor"][0] == 3
+
+
 def test_future_hindsight_targets_come_from_later_steps_and_pay_only_where_induced():
     """A rare row induced only at each episode's last step: with the future strategy, earlier steps are
     relabelled to it too, unpaid (they did not induce it); paid exactly where their own graph matches."""

@@ -145,6 +145,24 @@ def test_checkpoint_resumes_both_phases(tmp_path) -> None:
     assert resumed.weights().version == learner.version + 1
 
 
+def test_a_resumed_learner_links_the_worker_s_next_steps_to_those_it_saved(tmp_path) -> None:
+    worker, learner = _stack(tmp_path, budget=10_000)
+    _hand_over(learner, worker)
+    for _ in range(2):
+        learner.ingest(worker.collect_skills())
+    learner.checkpoint(tmp_path / "ckpt.pt")
+    _, resumed = _stack(tmp_path, budget=10_000)
+    assert resumed.restore(tmp_path / "ckpt.pt")
+    replay = resumed.agent.replay
+    last = replay.size - 1
+    batch = worker.collect_skills()
+    resumed.ingest(batch)
+    continues = batch.transitions.episode_id[0] == replay.fields["episode"][last] \
+        and batch.transitions.step[0] == replay.fields["step"][last] + 1
+    assert continues  # 2 x 64 steps of a 150-step episode: the third batch goes on with it
+    assert replay.fields["successor"][last] == last + 1
+
+
 def test_coverage_counts_each_episode_once() -> None:
     cov = EpisodeCoverage(2)
     row = np.zeros((3, 2, 3), bool)
