@@ -378,5 +378,6 @@ def main(argv: list[str] | None = None) -> None:
                run_seed=lambda seed, budget, args, _save: run_seed(seed, budget, args.env), table=table,
                add_arguments=_add_arguments)
 
+
 if __name__ == "__main__":
     main()

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causal.skild import SkiLDConfig, object_names
 from benchmarks.skild_args import add_learner_arguments, learner_configs
+from causal.skild import SkiLDConfig, object_names
 from causal.skild_agent import SkillLearnerConfig
 from causal.skild_pretrain import PretrainConfig, coverage, describe_row, multi_object, pretrain, target_hit_rates
 
@@ -128,8 +128,10 @@ def main(env: str, env_steps: int, seeds: list[int], episodes: int, episode_leng
     name = env if graphs == "true" else f"{env}-{graphs}"
     (out / f"{name}.json").write_text(json.dumps({"env": env, "graphs": graphs, "env_steps": env_steps, "seeds": seeds,
                                                  "updates_per_step": updates_per_step,
-                                                 "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step, "skill_hidden": learner.hidden,
-                                                 "diversity_weight": cfg.diversity_weight, "relabel_horizon": cfg.relabel_horizon, "relabel_random": cfg.relabel_random,
+                                                 "eps_decay_steps": learner.eps_decay_steps, "n_step": learner.n_step,
+                                                 "skill_hidden": learner.hidden, "diversity_weight": cfg.diversity_weight,
+                                                 "relabel_horizon": cfg.relabel_horizon,
+                                                 "relabel_random": cfg.relabel_random,
                                                  "episodes": episodes, "episode_length": episode_length,
                                                  "wall_s": time.time() - wall, "budget": budget, "table": lines},
                                                 indent=1))

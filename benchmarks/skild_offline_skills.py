@@ -38,15 +38,16 @@ from causal.skild import SkiLDConfig, graph_matches, object_names, row_keys
 from causal.skild_agent import SkillLearnerConfig, SkiLDAgent
 from causal.skild_pretrain import PretrainConfig, describe_row, pretrain, target_hit_rates
 
+UNIFORM = {"relabel_fraction": 0.0, "relabel_random": 1.0, "diversity_k": 1, "diversity_weight": 0.0}
+"""Every sample labelled with a target drawn uniformly from the history; K = 1, no diversity term."""
 VARIANTS: dict[str, tuple[dict, dict]] = {
     "default": ({}, {}),
     "wide": ({}, {"hidden": 512}),
     "random": ({"relabel_random": 0.5}, {"hidden": 512}),
     "future-random": ({"relabel_random": 0.5, "relabel_horizon": 20}, {"hidden": 512}),
-    "uniform": ({"relabel_fraction": 0.0, "relabel_random": 1.0, "diversity_k": 1, "diversity_weight": 0.0}, {}),
-    "uniform-wide": ({"relabel_fraction": 0.0, "relabel_random": 1.0, "diversity_k": 1, "diversity_weight": 0.0},
-                     {"hidden": 512}),
-    "one-target": ({"relabel_fraction": 0.0, "relabel_random": 1.0, "diversity_k": 1, "diversity_weight": 0.0}, {}),
+    "uniform": (UNIFORM, {}),
+    "uniform-wide": (UNIFORM, {"hidden": 512}),
+    "one-target": (UNIFORM, {}),  # with a history of --target alone
 }
 
 
@@ -116,12 +117,10 @@ def markdown(results: dict[str, dict], names: list[str], shares: dict[str, float
     shares = shares or {}
     head = ("| target | share of the replay | " + " | ".join(variants) + " | random actions |\n|---|---|"
             + "---|" * (len(variants) + 1) + "\n")
+    skill = {v: {r["target"]: r["skill"] for r in results[v]["rates"]} for v in variants}
     body = ""
     for name in names:
-        cells = []
-        for v in variants:
-            hit = {r["target"]: r["skill"] for r in results[v]["rates"]}.get(name)
-            cells.append("" if hit is None else f"{hit:.2f}")
+        cells = ["" if name not in skill[v] else f"{skill[v][name]:.2f}" for v in variants]
         cells.append(f"{random[name]:.2f}" if name in random else "")
         share = f"{shares[name]:.4f}" if name in shares else ""
         body += f"| {name} | {share} | " + " | ".join(cells) + " |\n"

@@ -165,8 +165,9 @@ class SkillReplay:
     def sample_index(self, batch: int, rng: np.random.Generator) -> np.ndarray:
         return rng.integers(0, self.size, batch)
 
-    def rows(self, index: np.ndarray) -> dict[str, np.ndarray]:
-        return {name: value[index] for name, value in self.fields.items()}
+    def rows(self, index: np.ndarray, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+        """The fields (or only ``names``) of rows ``index``."""
+        return {name: self.fields[name][index] for name in (names or self.fields)}
 
     def sample(self, batch: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         return self.rows(self.sample_index(batch, rng))
@@ -295,7 +296,8 @@ class SkiLDAgent:
         batch = self.replay.rows(index)
         achieved = None
         if self.mode == "skild" and self.cfg.relabel_horizon > 1:
-            achieved = self.replay.rows(self.replay.future(index, self.cfg.relabel_horizon, self.rng))
+            achieved = self.replay.rows(self.replay.future(index, self.cfg.relabel_horizon, self.rng),
+                                        ("induced", "counts"))
         s, s2 = self.features(batch["state"]), self.features(batch["next_state"])
         reward, labels, _ = self.rewards(batch, s2, achieved)
         factor, row, b = (torch.as_tensor(labels["factor"]), torch.as_tensor(labels["row"]),
@@ -303,7 +305,7 @@ class SkiLDAgent:
         disc_loss = self._update_discriminator(s2, factor, row, b, batch, labels)
         ret, last, discount = self._n_step(index, batch, reward, labels)
         with torch.no_grad():
-            s_n = self.features(self.replay.fields["next_state"][last])
+            s_n = s2 if self.learner.n_step == 1 else self.features(self.replay.fields["next_state"][last])
             best = self.q(s_n, factor, row, b).argmax(1, keepdim=True)
             bootstrap = self.q_target(s_n, factor, row, b).gather(1, best).squeeze(1)
             target = torch.as_tensor(ret) + torch.as_tensor(discount) * bootstrap
@@ -337,7 +339,7 @@ class SkiLDAgent:
             go[go] = self.replay.follows(last[go], nxt[go])
             if not go.any():
                 break
-            rows = self.replay.rows(nxt[go])
+            rows = self.replay.rows(nxt[go], ("induced", "next_state", "terminated", "b"))
             r, _ = self.step_reward(rows, self.features(rows["next_state"]), labels["factor"][go], labels["row"][go])
             ret[go] += discount[go] * r
             last[go] = nxt[go]
