@@ -134,10 +134,16 @@ class FLAM(nn.Module):
 
     def infer(self, features: torch.Tensor) -> torch.Tensor:
         """Posterior means of the latent actions ``[B, T-1, K, d_a]`` of a clip's features."""
+        return self.posterior(features)[0]
+
+    def posterior(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The latent actions' posterior (eq. 8.4) of a clip's features ``[B, T, n, d_e]``: means and log
+        standard deviations ``[B, T-1, K, d_a]``."""
         slots, _ = self.factorizer(features)
         k, d = slots.shape[2:]
-        mu, _ = self._posterior(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
-        return mu.view(slots.shape[:1] + (-1,) + mu.shape[1:])
+        mu, log_sigma = self._posterior(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
+        shape = slots.shape[:1] + (-1,) + mu.shape[1:]
+        return mu.view(shape), log_sigma.view(shape)
 
     def _posterior(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The IDM's posterior ``[N, K, d_a]`` (eq. 8.4); with ``static_background``, slot 0's is N(0, I)

@@ -26,8 +26,8 @@ from proto.limits import MAX_STEPS, REJECT_REASONS, ProtocolError
 from proto.limits import require as _require
 from proto.limits import short as _short
 from proto.messages import MESSAGE_TYPES, SCHEMA_VERSION
-from proto.messages import (Control, EnvSpec, FrameBatch, GraphReport, InducedGraphs, LocalGraphReport, ScoredBatch,
-                            ServiceStats, SkillBatch, TransitionBatch, Weights)
+from proto.messages import (Control, EnvSpec, FrameBatch, GraphReport, InducedGraphs, LatentActions, LocalGraphReport,
+                            ScoredBatch, ServiceStats, SkillBatch, TransitionBatch, Weights)
 from proto.validators import VALIDATORS as _VALIDATORS
 
 __all__ = ["ARRAY_DTYPES", "MAX_ARRAY_ELEMENTS", "MAX_CONTAINERS", "MAX_CONTAINER_LEN", "MAX_MESSAGE_BYTES", "MAX_NDIM",
@@ -326,6 +326,11 @@ _SCHEMAS: Final[dict[type, dict[str, Decoder]]] = {
     },
     InducedGraphs: {
         "kind": _str, "worker_id": _str, "seq": _int, "weights_version": _int, "graphs": _array("uint8", ndim=3),
+    },
+    LatentActions: {
+        "kind": _str, "worker_id": _str, "seq": _int, "weights_version": _int,
+        "episode_id": _array("int64", ndim=1), "step": _array("int32", ndim=1),
+        "mean": _array("float32", ndim=3), "log_sigma": _array("float32", ndim=3),
     },
     Control: {"command": _str, "argument": _str, "issued_at": _float},
     ServiceStats: {

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 
 FACTOR_KINDS = ("continuous", "categorical")
 ACTION_KINDS = ("continuous", "categorical")
@@ -335,6 +335,32 @@ class InducedGraphs:
 
 
 @dataclass(frozen=True)
+class LatentActions:
+    """FLAM's per-slot latent actions of every step of one env-worker FrameBatch (schema version 10; ch. 8):
+    the factor-extractor's labels of the workers' stream, from the learner's FLAM weights, one
+    Gaussian posterior (eq. 8.4) per step and slot, inferred from the clip (s_t, s_{t+1})."""
+
+    TYPE: ClassVar[str] = "LatentActions"
+    kind: str
+    """The method whose model labelled the steps."""
+    worker_id: str
+    seq: int
+    """The FrameBatch ``(worker_id, seq)`` the labels belong to."""
+    weights_version: int
+    episode_id: np.ndarray
+    """int64 [T]: the steps' episodes (as the batch's)"""
+    step: np.ndarray
+    """int32 [T]: the steps' indices in their episodes"""
+    mean: np.ndarray
+    """float32 [T, K, d_a]: each slot's posterior mean"""
+    log_sigma: np.ndarray
+    """float32 [T, K, d_a]: each slot's posterior log standard deviation"""
+
+    def __len__(self) -> int:
+        return int(self.mean.shape[0])
+
+
+@dataclass(frozen=True)
 class Control:
     """An operator command for one service (or ``*``)."""
 
@@ -360,3 +386,4 @@ MESSAGE_TYPES: dict[str, type] = {
     for cls in (EnvSpec, TransitionBatch, FrameBatch, ScoredBatch, Weights, GraphReport, LocalGraphReport, Control, ServiceStats)
 }
 MESSAGE_TYPES.update({cls.TYPE: cls for cls in (SkillBatch, InducedGraphs)})  # SkiLD (ch. 6)
+MESSAGE_TYPES[LatentActions.TYPE] = LatentActions  # FLAM (ch. 8)

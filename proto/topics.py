@@ -56,6 +56,12 @@ def induced(run: str, kind: str = "*", worker: str = "*") -> str:
     return f"{ROOT}/{run}/induced/{kind}/{worker}"
 
 
+def latent_actions(run: str, worker: str = "*") -> str:
+    """FLAM's per-slot latent actions of env-worker ``worker``'s steps (LatentActions), from the factor-extractor."""
+    _check(run, worker)
+    return f"{ROOT}/{run}/latent/{worker}"
+
+
 def weights(run: str, model: str = "*") -> str:
     _check(run, model)
     return f"{ROOT}/{run}/weights/{model}"

@@ -11,8 +11,8 @@ import numpy as np
 
 from proto.limits import KEY_SEGMENT, MAX_LOCAL_EXAMPLES, MAX_STEPS, ProtocolError, require, short
 from proto.messages import ACTION_KINDS, BIASES, CONTROL_COMMANDS, EDGE_RULES, FACTOR_KINDS, NULL_BIASES, SKILL_PHASES
-from proto.messages import (Control, EnvSpec, FrameBatch, GraphReport, InducedGraphs, LocalGraphReport, ScoredBatch,
-                            ServiceStats, SkillBatch, TransitionBatch, Weights)
+from proto.messages import (Control, EnvSpec, FrameBatch, GraphReport, InducedGraphs, LatentActions, LocalGraphReport,
+                            ScoredBatch, ServiceStats, SkillBatch, TransitionBatch, Weights)
 
 
 def _check_counters(msg: Any, *names: str) -> None:
@@ -209,6 +209,21 @@ def _check_induced(m: InducedGraphs) -> None:
         require(ok, "bad_field", f"InducedGraphs.{name}: {short(getattr(m, name))}")
 
 
+def _check_latent_actions(m: LatentActions) -> None:
+    t = m.mean.shape[0]
+    require(1 <= t <= MAX_STEPS, "bad_field", f"LatentActions: {t} steps")
+    require(min(m.mean.shape[1:]) >= 1, "bad_field", f"LatentActions.mean: shape {m.mean.shape}")
+    require(m.log_sigma.shape == m.mean.shape, "inconsistent",
+            f"LatentActions.log_sigma: shape {m.log_sigma.shape}, mean {m.mean.shape}")
+    for name in ("episode_id", "step"):
+        shape = getattr(m, name).shape
+        require(shape == (t,), "inconsistent", f"LatentActions.{name}: shape {shape}, want {(t,)}")
+    _check_counters(m, "seq", "weights_version")
+    for name in ("kind", "worker_id"):
+        ok = KEY_SEGMENT.fullmatch(getattr(m, name)) is not None
+        require(ok, "bad_field", f"LatentActions.{name}: {short(getattr(m, name))}")
+
+
 def _check_control(m: Control) -> None:
     require(m.command in CONTROL_COMMANDS, "bad_field", f"Control.command: {short(m.command)}")
 
@@ -228,6 +243,7 @@ VALIDATORS: Final[dict[type, Callable[[Any], None]]] = {
     LocalGraphReport: _check_local_report,
     SkillBatch: _check_skill_batch,
     InducedGraphs: _check_induced,
+    LatentActions: _check_latent_actions,
     Control: _check_control,
     ServiceStats: _check_stats,
 }

@@ -17,12 +17,15 @@ Who publishes and who subscribes, per role (``<run>`` elided; ``<m>`` is the run
 | intrinsic-reward | scored/* | transitions/*, weights/<m>, graph/<m> | | weights/<m>, graph/<m>, env/spec | token |
 | policy-learner | weights/policy | transitions/* or scored/*, graph/<m> | weights/policy | env/spec | token |
 | factor-extractor (runs with frames) | transitions/*, env/spec | frames/* | env/spec | env/frames | token |
+| factor-extractor (FLAM's labels) | latent/* | frames/*, weights/<m> | | weights/<m>, env/spec | token |
 | dashboard | | graph/*, local/*, stats/** of the watched runs | | graph/*, local/* | token |
 | supervisor | control/all, control/env-worker | stats/**, graph/*, local/* | | | token |
 | operator | control/* | stats/** | | | watches and queries alive/** |
 
 In a run with frames (``--worker-publish-frames``) the env-worker publishes frames/* instead of
-transitions/* and serves its spec on env/frames; the factor-extractor role exists only in such a run.
+transitions/* and serves its spec on env/frames; the factor-extractor role exists only in such a run
+or in a FLAM run with ``--label-latent-actions``, where the env-worker publishes frames/* beside
+transitions/* and the extractor labels them (the second factor-extractor row).
 
 Every service also publishes ``stats/<service>/*`` and subscribes to ``control/<service>`` and
 ``control/all``. How a capability becomes Zenoh ACL messages and flows (ingress: from the client to
@@ -71,7 +74,7 @@ SERVICES = ("env-worker", "dynamics-learner", "graph-evaluator", "intrinsic-rewa
 """Roles of the service processes; each service's processes share its role."""
 ROLES = SERVICES + ("supervisor", "operator")
 FRAMES_ROLE = "factor-extractor"
-"""The role of a run with frames only (:func:`run_roles` with ``frames=True``)."""
+"""The role of a run with frames only (:func:`run_roles` with ``frames=True`` or ``latent=True``)."""
 POLICY_MODEL = "policy"
 """The policy-learner's weights topic segment (``causal.rl.policy_weights.MODEL``)."""
 SKILD_POLICY_MODEL = "skild-policy"
@@ -116,11 +119,13 @@ def _service(run: str, name: str, *, publish: tuple[str, ...] = (), subscribe: t
 
 
 def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: bool = False,
-              workers: int = 0) -> dict[str, Role]:
+              workers: int = 0, latent: bool = False) -> dict[str, Role]:
     """Every role of run ``run`` whose learner, evaluator and reward use ``method``, by user name.
 
     ``dashboard_run`` is the run the dashboard shows (``*``: every run on the router; default ``run``).
     ``frames``: the env-workers publish frames, a factor-extractor turns them into transitions.
+    ``latent``: the env-workers publish frames beside their transitions, a factor-extractor labels them
+    with the learner's latent actions (FLAM, ``--label-latent-actions``).
     ``workers``: 0, one ``env-worker`` user shared by every replica; N > 0, the users ``env-worker-0`` ..
     ``env-worker-<N-1>``, each pinned to its own keys, and every other service pinned to instance 0
     (:func:`pinned`).
@@ -130,10 +135,15 @@ def run_roles(run: str, method: str, dashboard_run: str | None = None, frames: b
     graph, local = topics.graph(run, method), topics.local(run, method)
     transitions, scored = topics.transitions(run), topics.scored(run)
     worker_publish, worker_spec = (topics.frames(run),), topics.frames_spec(run)
+    if frames and latent:
+        raise ValueError("frames (instead of transitions) and latent (frames beside them) exclude each other")
     if not frames:
-        worker_publish, worker_spec = (transitions,), topics.env_spec(run)
+        worker_publish, worker_spec = (transitions,) + ((topics.frames(run),) if latent else ()), topics.env_spec(run)
     extractor = (_service(run, FRAMES_ROLE, publish=(transitions,), subscribe=(topics.frames(run),),
                           serve=(topics.env_spec(run),), query=(topics.frames_spec(run),), spec=False),) if frames else ()
+    if latent:
+        extractor = (_service(run, FRAMES_ROLE, publish=(topics.latent_actions(run),),
+                              subscribe=(topics.frames(run), weights), query=(weights,)),)
     roles = extractor + (
         _service(run, "env-worker", publish=worker_publish, subscribe=(policy,), serve=(worker_spec,),
                  query=(policy,), spec=False),

@@ -23,6 +23,9 @@ class EnvWorkerConfig(ServiceConfig):
     follow_policy: bool = doc(False, "act with the newest policy weights (weights/policy); random until they arrive")
     publish_frames: bool = doc(False, "publish the steps as frames (FrameBatch on frames/<worker>, for the factor-extractor) "
                                       "instead of transitions; the env must render them (chemical-pixels)")
+    frames_beside: bool = doc(False, "publish each batch's frames too (FrameBatch on frames/<worker>) beside its "
+                                     "transitions, which still go on transitions/<worker>: for the factor-extractor's "
+                                     "latent-action labels (a flam run with --label-latent-actions)")
     frame_stride: int = doc(1, "publish_frames: keep every n-th pixel along each side of a frame (downsampling)")
     skild: bool = doc(False, "act with SkiLD's skill/task policies (weights/skild-policy; no steps before they "
                              "arrive) and publish each batch's skill labels too (SkillBatch on skills/<worker>)")
@@ -34,6 +37,9 @@ class EnvWorkerConfig(ServiceConfig):
             raise ValueError(f"batch_steps must be in [1, 65536], got {self.batch_steps}")
         if self.max_steps_per_second < 0 or self.max_steps < 0:
             raise ValueError("max_steps_per_second and max_steps must be >= 0")
+        if self.publish_frames and self.frames_beside:
+            raise ValueError("publish_frames (frames instead of transitions) and frames_beside (frames beside "
+                             "them) exclude each other")
         if self.frame_stride < 1:
             raise ValueError(f"frame_stride must be >= 1, got {self.frame_stride}")
         if self.worker_index < -1:

@@ -189,7 +189,7 @@ class EnvWorkerCore:
             self.skild = SkildActor(seed)
             """SkiLD's skill/task policies (``cfg.skild``): the only collection policy, once loaded."""
         self.observation, info = self.env.reset(seed=seed)
-        self.recorder = FrameRecorder(info, cfg.frame_stride) if cfg.publish_frames else None
+        self.recorder = FrameRecorder(info, cfg.frame_stride) if cfg.publish_frames or cfg.frames_beside else None
         self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
         self.first_episode = GENERATION_EPISODES * generation
         self.episode, self.step_in_episode = self.first_episode, 0
@@ -290,6 +290,10 @@ class EnvWorkerCore:
 
     def collect_frames(self, steps: int | None = None) -> FrameBatch:
         """As :meth:`collect`, the steps as frames (``publish_frames``): a FrameBatch for the factor-extractor."""
+        return self.frames_of(self.collect(steps))
+
+    def frames_of(self, batch: TransitionBatch) -> FrameBatch:
+        """The frames of ``batch``, the batch :meth:`collect` returned last (``publish_frames`` or ``frames_beside``)."""
         if self.recorder is None:
-            raise RuntimeError("this worker does not record frames (publish_frames is off)")
-        return self.recorder.pack(self.collect(steps))
+            raise RuntimeError("this worker does not record frames (publish_frames and frames_beside are off)")
+        return self.recorder.pack(batch)

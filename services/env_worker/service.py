@@ -38,7 +38,7 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
     episodes = shell.metrics.counter("causeway_env_episodes", "Episodes finished")
     batches = shell.metrics.counter("causeway_transition_batches_published", "TransitionBatches published")
     sent = shell.metrics.counter("causeway_transition_bytes_published",
-                                 "Bytes of TransitionBatches (FrameBatches with --publish-frames) published")
+                                 "Bytes of TransitionBatches (and FrameBatches: --publish-frames, --frames-beside) published")
     options = shell.metrics.counter("causeway_skill_options_chosen",
                                     "Skills started by a collection policy over skills, by option and policy "
                                     "(uniform: the chapter's Uniform skills; learned: published policy weights)",
@@ -70,6 +70,8 @@ def run(cfg: EnvWorkerConfig, transport: Transport | None = None) -> None:
             batch = collect()
             t0 = time.perf_counter()
             sent.inc(shell.publish(topic, batch))
+            if cfg.frames_beside:
+                sent.inc(shell.publish(topics.frames(cfg.run_id, core.worker_id), core.frames_of(batch)))
             if core.skild is not None:
                 sent.inc(shell.publish(topics.skills(cfg.run_id, core.worker_id), core.skill_batch(batch)))
             publish_seconds.observe(time.perf_counter() - t0)

@@ -9,12 +9,19 @@ from proto.settings import section
 from services.runtime.config import ServiceConfig, doc
 
 IDENTITIES = ("learned", "none")
+MODES = ("slots", "latent-actions")
 
 
 @dataclass(frozen=True)
 class FactorExtractorConfig(ServiceConfig):
     """factor-extractor: learns Dyn-O's slots (eq. 7.1) from the env-workers' frames, freezes them, then
-    publishes every FrameBatch as a TransitionBatch of slot factors."""
+    publishes every FrameBatch as a TransitionBatch of slot factors; or, in a FLAM run, labels every
+    FrameBatch with the learner's per-slot latent actions (``mode``)."""
+
+    mode: str = doc("slots", "slots: learn Dyn-O's slots and publish the frames as slot transitions (a run with "
+                             "--worker-publish-frames); latent-actions: label the frames with FLAM's per-slot latent "
+                             "actions from the learner's weights, on latent/<worker> (a flam run with "
+                             "--label-latent-actions); the slot settings below are for 'slots' only", choices=MODES)
 
     num_slots: int = doc(0, "K: slots per frame; 0 = objects + 1 (one per object of the env's spec and the background)")
     slot: SlotConfig = section(SlotConfig, prefix="slot", exclude=("num_slots",), slot_dim=16,

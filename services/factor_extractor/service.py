@@ -1,9 +1,14 @@
 """factor-extractor service shell: the only factor-extractor file that touches the bus.
 
-Subscribes to ``frames/*``, asks the env-workers' spec on ``env/frames``, learns the slots from the first
-frames, then serves the slot factors' spec on ``env/spec`` (what the dynamics-learner and the evaluator
-wait for, so they start once the slots are frozen) and publishes each FrameBatch as a TransitionBatch
-on ``transitions/<worker>``: the consumers take them unchanged.
+Mode ``slots`` (Dyn-O, ch. 7): subscribes to ``frames/*``, asks the env-workers' spec on ``env/frames``,
+learns the slots from the first frames, then serves the slot factors' spec on ``env/spec`` (what the
+dynamics-learner and the evaluator wait for, so they start once the slots are frozen) and publishes each
+FrameBatch as a TransitionBatch on ``transitions/<worker>``: the consumers take them unchanged.
+
+Mode ``latent-actions`` (FLAM, ch. 8): the env-workers publish transitions and frames; the extractor
+asks the env's spec on ``env/spec``, takes the learner's FLAM weights (``weights/<method>``, queried once
+at start as a late joiner does) and publishes each FrameBatch's per-slot latent actions on
+``latent/<worker>`` (:mod:`services.factor_extractor.latent`).
 """
 from __future__ import annotations
 
@@ -13,10 +18,11 @@ import time
 
 from proto import topics
 from proto.codec import ProtocolError, decode
-from proto.messages import EnvSpec, FrameBatch
+from proto.messages import EnvSpec, FrameBatch, Weights
 from services.bus.base import Transport
 from services.factor_extractor.config import FactorExtractorConfig
 from services.factor_extractor.core import FactorExtractorCore
+from services.factor_extractor.latent import LatentActionLabeller
 from services.runtime.shell import ServiceShell, service_main
 
 SERVICE = "factor-extractor"
@@ -40,6 +46,9 @@ class _Metrics:
 
 
 def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
+    if cfg.mode == "latent-actions":
+        run_labeller(cfg, transport)
+        return
     shell = ServiceShell(SERVICE, cfg, transport)
     metrics = _Metrics(shell)
     frames = shell.inbox("frames", FrameBatch, maxsize=64)
@@ -130,6 +139,96 @@ def _train(core: FactorExtractorCore, metrics: _Metrics) -> None:
     for term, value in stats.items():
         if term != "phase":
             metrics.loss.labels(term=term).set(value)
+
+
+class _LabelMetrics:
+    def __init__(self, shell: ServiceShell) -> None:
+        m = shell.metrics
+        self.frames = m.counter("causeway_frames_received", "Frames received (every distinct frame of every FrameBatch)")
+        self.labelled = m.counter("causeway_latent_action_steps_labelled", "Steps labelled with per-slot latent actions")
+        self.unlabelled = m.counter("causeway_latent_action_steps_unlabelled",
+                                    "Steps received before FLAM weights past the autoencoder phase were held")
+        self.sent = m.counter("causeway_latent_action_bytes_published", "Bytes of LatentActions published")
+        self.version = m.gauge("causeway_latent_action_weights_version", "Version of the FLAM weights labelling")
+        self.kl = m.gauge("causeway_latent_action_kl", "Each slot's mean KL to N(0, I) over the labelled steps "
+                          "(nats per transition: what its latent action carries)", ("slot",))
+        self.label_seconds = m.histogram("causeway_label_seconds", "Time to label one FrameBatch",
+                                         (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0))
+        self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")
+
+
+def run_labeller(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
+    """Mode ``latent-actions``: label every FrameBatch with the newest FLAM weights' per-slot latent actions."""
+    shell = ServiceShell(SERVICE, cfg, transport)
+    metrics = _LabelMetrics(shell)
+    frames = shell.inbox("frames", FrameBatch, maxsize=64)
+    weights = shell.inbox("weights", Weights, maxsize=2)
+    shell.subscribe(topics.frames(cfg.run_id), frames)
+    shell.subscribe(topics.weights(cfg.run_id, cfg.method), weights)
+    env = shell.wait_for_spec()
+    if env is None:
+        shell.close()
+        return
+    core = LatentActionLabeller(cfg, env)
+    ckpt = shell.resume(core)
+    _load_weights(shell, core, _query_weights(shell), metrics)
+    last_ckpt = time.monotonic()
+    try:
+        while not shell.stopping.is_set():
+            shell.poll_control()
+            _load_weights(shell, core, [w for _, w in weights.drain()], metrics)
+            item = frames.get(timeout=0.05) if not shell.paused else None
+            if item is not None:
+                _label(shell, core, item[1], metrics)
+            now = time.monotonic()
+            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
+                core.checkpoint(ckpt)
+                metrics.checkpoints.inc()
+                shell.checkpoint_requested, last_ckpt = False, now
+            shell.beat(core.progress())
+    finally:
+        core.checkpoint(ckpt)
+        shell.beat(core.progress(), force=True)
+        shell.close()
+
+
+def _query_weights(shell: ServiceShell) -> list[Weights]:
+    """The learner's newest weights, asked once at start (a late or restarted labeller does not wait)."""
+    found = []
+    for key, payload in shell.transport.query(topics.weights(shell.cfg.run_id, shell.cfg.method), timeout=1.0):
+        try:
+            found.append(decode(payload, Weights))
+        except ProtocolError as exc:
+            shell.metrics.reject(exc.reason)
+            log.warning("rejected Weights from %s: %s", key, exc)
+    return found
+
+
+def _load_weights(shell: ServiceShell, core: LatentActionLabeller, weights: list[Weights], metrics: _LabelMetrics) -> None:
+    for w in weights:
+        try:
+            was_ready = core.ready
+            if core.load_weights(w) and core.ready and not was_ready:
+                log.info("labelling latent actions with FLAM weights v%d (%d updates)", w.version, w.updates)
+        except ValueError as exc:  # ProtocolError is one: a version past the bound
+            shell.metrics.reject(getattr(exc, "reason", "inconsistent"))
+            log.warning("rejected weights v%d: %s", w.version, exc)
+    metrics.version.set(core.weights_version)
+
+
+def _label(shell: ServiceShell, core: LatentActionLabeller, batch: FrameBatch, metrics: _LabelMetrics) -> None:
+    t0 = time.perf_counter()
+    metrics.frames.inc(len(batch.frames))
+    out = shell.guarded(core.label, batch)
+    if out is None:
+        if not core.ready:
+            metrics.unlabelled.inc(len(batch))
+        return
+    metrics.label_seconds.observe(time.perf_counter() - t0)
+    metrics.sent.inc(shell.publish(topics.latent_actions(shell.cfg.run_id, out.worker_id), out))
+    metrics.labelled.inc(len(out))
+    for k, value in enumerate(core.slot_kl()):
+        metrics.kl.labels(slot=str(k)).set(value)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -164,6 +164,8 @@ def print_summary(content: dict) -> None:
     if "latent_actions" in content:
         latent_keys = ("psnr", "dci_d", "dci_c", "dci_i", "dci_d_positions", "dci_c_positions", "dci_i_positions", "updates", "error")
         shown["latent_actions"] = {k: content["latent_actions"].get(k) for k in latent_keys if k in content["latent_actions"]}
+    if "latent_labels" in content:
+        shown["latent_labels"] = {k: content["latent_labels"].get(k) for k in ("labelled_steps", "slot_kl")}
     if "reward_graph" in content:
         shown["reward_graph"] = {k: content["reward_graph"].get(k) for k in ("learned_parents", "accuracy", "f1")}
         shown["task_abstraction"] = {k: content["task_abstraction"].get(k) for k in ("kept", "accuracy")}

@@ -70,6 +70,10 @@ class RunConfig(RunSettings):
                                    "newest weights the workers act with)", choices=COLLECTORS)
     intrinsic: str = doc("none", "intrinsic reward of the policy (all but none start an intrinsic-reward service)",
                          choices=INTRINSIC)
+    label_latent_actions: bool = doc(False, "a FLAM run: the env-workers publish their frames beside the transitions and "
+                                            "a factor-extractor labels every step with the learner's per-slot latent "
+                                            "actions (LatentActions on latent/<worker>; the live page and summary.json "
+                                            "show what each slot's labels carry)")
     evaluate: bool = doc(True, "after the run: the final graph on all held-out data and, where the env and "
                                "method have one, the post-run evaluation (Chemical: k-step prediction and, with "
                                "--task match, CEM and policy returns; summary.json, evaluation.png)")
@@ -83,13 +87,13 @@ class RunConfig(RunSettings):
                                               min_interval_s=5.0)
     worker: EnvWorkerConfig = section(EnvWorkerConfig, prefix="worker",
                                       exclude=SERVICE_FIELDS + ("env", "env_options", "worker_index", "follow_policy",
-                                                                "skild"),
+                                                                "skild", "frames_beside"),
                                       max_steps_per_second=2000.0)
     policy: PolicyLearnerConfig = section(PolicyLearnerConfig, prefix="policy",
                                           exclude=SERVICE_FIELDS + ("algo", "skills", "scored", "skild", "models"))
     intrinsic_reward: IntrinsicRewardConfig = section(IntrinsicRewardConfig, prefix="intrinsic",
                                                       exclude=SERVICE_FIELDS + ("reward",))
-    extractor: FactorExtractorConfig = section(FactorExtractorConfig, prefix="extractor", exclude=SERVICE_FIELDS,
+    extractor: FactorExtractorConfig = section(FactorExtractorConfig, prefix="extractor", exclude=SERVICE_FIELDS + ("mode",),
                                                help="the factor-extractor of a run with --worker-publish-frames true")
 
     def __post_init__(self) -> None:

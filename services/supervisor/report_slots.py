@@ -1,4 +1,6 @@
-"""The factor-extractor's block of summary.json (ch. 7, ``--worker-publish-frames``): how good its frozen slots are.
+"""The factor-extractor's blocks of summary.json: how good its frozen slots are (ch. 7,
+``--worker-publish-frames``: ``slots``), or what its latent-action labels carry (ch. 8,
+``--label-latent-actions``: ``latent_labels``, :func:`label_facts`).
 
 From the extractor's last beat, under the contract's ``slots`` key: ``fg_ari`` (the slots' segmentation
 of held-out frames of its replay, no masks), ``identity_slot_accuracy`` / ``identity_frame_accuracy``
@@ -21,7 +23,7 @@ SCORES = ("fg_ari", "identity_slot_accuracy", "identity_frame_accuracy", "publis
 
 def slot_facts(stats: ServiceStats | None) -> dict[str, Any]:
     """``{"slots": {...}}`` from a factor-extractor's beat once its slots are frozen ({} otherwise)."""
-    if stats is None or not stats.values.get("ready"):
+    if stats is None or not stats.values.get("ready") or "labelled_steps" in stats.values:
         return {}
     v = stats.values
     return {"slots": {"evaluation": "factor-extractor: frozen slots, no masks; held-out frames of its replay "
@@ -29,3 +31,19 @@ def slot_facts(stats: ServiceStats | None) -> dict[str, Any]:
                       **{k: float(v[k]) for k in SCORES if k in v},
                       **{k: int(v.get(k, 0)) for k in ("slot_updates", "frames_trained_on")},
                       **({"bound": bool(v["fg_ari"] >= BOUND_FG_ARI)} if "fg_ari" in v else {})}}
+
+
+def label_facts(stats: ServiceStats | None) -> dict[str, Any]:
+    """``{"latent_labels": {...}}`` from a labelling factor-extractor's last beat ({} for none, or for the
+    slots mode): the steps it labelled and those that came before trained FLAM weights, the weights version
+    it labelled with last, and each slot's mean KL to N(0, I) over the labelled steps (``slot_kl``, nats per
+    transition: what the labels of that slot carry on the workers' own stream)."""
+    if stats is None or "labelled_steps" not in stats.values:
+        return {}
+    v = stats.values
+    kl = [float(v[f"stream_slot{k}_kl"]) for k in range(len(v)) if f"stream_slot{k}_kl" in v]
+    return {"latent_labels": {"evaluation": "factor-extractor: the env-workers' steps labelled with the newest FLAM "
+                                            "weights' per-slot posteriors (clips s_t, s_t+1); slot_kl over every "
+                                            "labelled step",
+                              **{k: int(v.get(k, 0)) for k in ("labelled_steps", "labelled_batches", "unlabelled_steps")},
+                              "weights_version": int(v.get("labels_weights_version", 0)), "slot_kl": kl}}

@@ -38,7 +38,7 @@ from services.supervisor.config import RunConfig
 from services.supervisor.processes import FatalServiceError, ManagedProcess, leftovers, stop_all
 from services.supervisor.progress import Progress
 from services.supervisor.report_skills import skill_facts
-from services.supervisor.report_slots import slot_facts
+from services.supervisor.report_slots import label_facts, slot_facts
 from services.supervisor.stop_rules import StopRules
 from services.supervisor.wiring import (MODULES, check_ports_free, credentials_path, learning_services,
                                        prepare_bus_auth, resolve, service_configs, worker_config)
@@ -366,6 +366,7 @@ class Supervisor:
                              "evaluation": "the env-workers' last 100 episodes each (the collection policy)"}
         facts.update(skill_facts(self.progress.stats.get(("policy-learner", "0"))))
         facts.update(slot_facts(self.progress.stats.get(("factor-extractor", "0"))))
+        facts.update(label_facts(self.progress.stats.get(("factor-extractor", "0"))))
         with self._lock:
             record = RunRecord(facts, self.last_report, list(self.history), failure=self.failure,
                                policy_timeline=list(self.policy_timeline), local_report=self.last_local,

@@ -63,6 +63,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
         raise ValueError(f"method {cfg.method!r} estimates no global graph: --target-f1 has nothing to reach")
     _check_edge_tests(cfg, method)
     _check_frames(cfg, method)
+    _check_latent_labels(cfg, method)
     if cfg.target_f1 and not entry.has_global_truth:
         raise ValueError(f"environment {cfg.env!r} has no true global graph to score --target-metric against")
     run_id = cfg.run_id or (Path(cfg.run_dir).name if cfg.run_dir else
@@ -78,6 +79,20 @@ def _entry(name: str) -> EnvEntry:
         return env_entry(name)
     except KeyError as exc:
         raise ValueError(exc.args[0]) from None
+
+
+def _check_latent_labels(cfg: RunConfig, method: Method) -> None:
+    """``--label-latent-actions`` needs a method with latent actions (FLAM) and full-size frames."""
+    if not cfg.label_latent_actions:
+        return
+    if method.latent_actions is None:
+        raise ValueError(f"--label-latent-actions: method {cfg.method!r} has no latent actions (flam has)")
+    if cfg.worker.publish_frames:
+        raise ValueError("--label-latent-actions publishes frames beside the transitions; leave "
+                         "--worker-publish-frames false")
+    if cfg.worker.frame_stride != 1:
+        raise ValueError(f"--label-latent-actions: the FLAM model reads whole frames; --worker-frame-stride must be 1, "
+                         f"got {cfg.worker.frame_stride}")
 
 
 def _check_frames(cfg: RunConfig, method: Method) -> None:
@@ -183,7 +198,8 @@ def service_configs(cfg: RunConfig, connect: str, worker_index: int = 0) -> dict
                                                 reward=cfg.intrinsic if cfg.intrinsic != "none" else "preddiff"),
         "env-worker": worker_config(cfg, connect, worker_index),
     }
-    configs["factor-extractor"] = dataclasses.replace(cfg.extractor, **common, metrics_port=port(6))
+    configs["factor-extractor"] = dataclasses.replace(cfg.extractor, **common, metrics_port=port(6),
+                                                      mode="latent-actions" if cfg.label_latent_actions else "slots")
     return {name: c if name == "env-worker" else dataclasses.replace(c, bus_credentials=credentials_path(cfg, name))
             for name, c in configs.items()}
 
@@ -205,7 +221,8 @@ def prepare_bus_auth(cfg: RunConfig) -> RouterAuth | None:
     (:meth:`Supervisor.free_worker_index`)."""
     if not cfg.bus_auth:
         return None
-    roles = run_roles(cfg.run_id, cfg.method, frames=cfg.worker.publish_frames, workers=cfg.max_workers)
+    roles = run_roles(cfg.run_id, cfg.method, frames=cfg.worker.publish_frames, workers=cfg.max_workers,
+                      latent=cfg.label_latent_actions)
     return write_run_secrets(cfg.run_dir, new_passwords(tuple(roles)), access_control(roles))
 
 
@@ -214,7 +231,8 @@ def learning_services(cfg: RunConfig) -> tuple[str, ...]:
     a method that estimates no graph)."""
     method = get_method(cfg.method)
     graphs = method.global_graph is not None or method.local_graph is not None
-    return (("factor-extractor",) if cfg.worker.publish_frames else ()) + (("dynamics-learner",) + (("graph-evaluator",) if graphs else ())
+    frames = cfg.worker.publish_frames or cfg.label_latent_actions
+    return (("factor-extractor",) if frames else ()) + (("dynamics-learner",) + (("graph-evaluator",) if graphs else ())
             + (("policy-learner",) if cfg.collector != "random" or skill_discovery(cfg) else ())
             + (("intrinsic-reward",) if cfg.intrinsic != "none" else ()))
 
@@ -225,6 +243,7 @@ def worker_config(cfg: RunConfig, connect: str, index: int) -> EnvWorkerConfig:
                                run_dir=cfg.run_dir, metrics_port=port, metrics_host=LOOPBACK, instance=str(index), env=cfg.env,
                                env_options=cfg.env_options, worker_index=index,
                                follow_policy=cfg.collector != "random", skild=skill_discovery(cfg),
+                               frames_beside=cfg.label_latent_actions,
                                local_graphs=scores_local_graphs(cfg) or (skill_discovery(cfg) and
                                                                          cfg.policy.skild_graphs == "true"),
                                bus_credentials=credentials_path(cfg, instance_user("env-worker", index)))

@@ -398,6 +398,15 @@ def test_a_flam_run_shows_its_per_slot_latent_actions(stack) -> None:
                                 "[r.dataset.slot, r.cells[1].textContent, r.querySelector('.latent-bar').style.width])")
         assert rows == [["0", "12.0", "50%"], ["1", "3.00", "12.5%"], ["2", "6.00", "25%"], ["3", "0.500", "2.1%"],
                         ["4", "24.0", "100%"]]
+        assert not visible(browser, "latent-labels")  # no labelling factor-extractor in this run yet
+        labels = make_stats("factor-extractor", "0", labelled_steps=5_120.0, unlabelled_steps=256.0,
+                            labels_weights_version=7.0, **{f"stream_slot{k}_kl": kl for k, kl in enumerate((0.1, 30.0, 29.5))})
+        publisher.publish(topics.stats("flam-demo", "factor-extractor", "0"), encode(labels))
+        browser.wait_for("!document.getElementById('latent-labels').hidden", 10, "the labels line")
+        assert "5,120 steps labelled with weights v7 (256 before" in text(browser, "#latent-labels")
+        stream = browser.evaluate("[...document.querySelectorAll('#latent-slots tr[data-slot]')].map(r => "
+                                  "r.querySelector('.stream-kl').textContent)")
+        assert stream == ["0.100", "30.0", "29.5", "–", "–"]  # the learner names 5 slots, these labels 3
         select_run(browser, RUN)
         browser.wait_for("document.body.dataset.weightsVersion === '2'", 10, "the CDL run")
         assert not visible(browser, "latent-panel")

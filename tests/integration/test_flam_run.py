@@ -1,6 +1,8 @@
 """``causeway run --method flam --env multigrid-agents`` end to end: the real supervisor, router and
 service processes on loopback; the learner trains the FSQ autoencoder and then FLAM on frames drawn
-from the run's transitions, beats the live scores, and ``summary.json`` carries ``latent_actions``."""
+from the run's transitions, beats the live scores, and ``summary.json`` carries ``latent_actions``.
+With ``--label-latent-actions true`` (and the bus roles on, the default) the env-worker publishes its
+frames beside the transitions and a factor-extractor labels them: ``summary.json``'s ``latent_labels``."""
 from __future__ import annotations
 
 import json
@@ -24,7 +26,8 @@ def test_a_flam_run_trains_latent_actions_and_writes_their_scores(tmp_path: Path
     cmd = CLI + ["--env", "multigrid-agents", "--method", "flam", "--max-seconds", "30", "--router-port", "0",
                  "--metrics-base-port", "0", "--dashboard-port", "0", "--progress", "false", "--run-dir", str(run_dir),
                  "--flam-ae-updates", "5", "--flam-slot-dim", "16", "--flam-batch-size", "8", "--flam-live-every", "5",
-                 "--flam-live-videos", "4", "--learner-warmup-steps", "100", "--worker-max-steps-per-second", "500"]
+                 "--flam-live-videos", "4", "--learner-warmup-steps", "100", "--worker-max-steps-per-second", "500",
+                 "--label-latent-actions", "true", "--learner-publish-every-s", "2"]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -34,6 +37,9 @@ def test_a_flam_run_trains_latent_actions_and_writes_their_scores(tmp_path: Path
     assert 0.0 < scores["psnr"] < 100.0 and all(0.0 <= scores[k] <= 1.0 for k in ("dci_d", "dci_c", "dci_i"))
     assert scores["num_slots"] == 5 and len(scores["slot_kl"]) == 5 and scores["videos"] == 100
     assert scores["updates"] > 5, "the learner never reached the latent-action phase"
+    labels = summary["latent_labels"]
+    assert labels["labelled_steps"] > 0 and labels["weights_version"] >= 1, labels
+    assert len(labels["slot_kl"]) == 5 and all(kl >= 0.0 for kl in labels["slot_kl"])
     saved = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
     model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
     model.load_state_dict(saved["trainer"]["model"])

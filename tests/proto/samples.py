@@ -11,6 +11,7 @@ import pytest
 
 from proto import REJECT_REASONS, Control, EnvSpec, GraphReport, LocalGraphReport, ProtocolError
 from proto import FrameBatch, ScoredBatch, ServiceStats, TransitionBatch, Weights, decode, encode
+from proto.messages import LatentActions
 
 Mutation = Callable[[dict[str, Any]], None]
 
@@ -98,6 +99,12 @@ def local_report() -> LocalGraphReport:
     )
 
 
+def latent_actions(t: int = 4, k: int = 3, d: int = 2) -> LatentActions:
+    rng = np.random.default_rng(2)
+    return LatentActions("flam", "w0", 7, 3, np.arange(t, dtype=np.int64), np.arange(t, dtype=np.int32),
+                         rng.normal(size=(t, k, d)).astype(np.float32), rng.normal(size=(t, k, d)).astype(np.float32))
+
+
 def control() -> Control:
     return Control("set_task", "lift", 12.5)
 
@@ -109,6 +116,7 @@ def stats() -> ServiceStats:
 SAMPLES: dict[type, Callable[[], Any]] = {
     EnvSpec: env_spec, TransitionBatch: transitions, FrameBatch: frame_batch, ScoredBatch: scored, Weights: weights,
     GraphReport: graph_report, LocalGraphReport: local_report, Control: control, ServiceStats: stats,
+    LatentActions: latent_actions,
 }
 
 

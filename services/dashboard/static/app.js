@@ -117,28 +117,43 @@ function renderServices() {
   renderLatentActions();
 }
 
-// FLAM: the dynamics-learner's live scores (live_* values of its beat): PSNR, DCI, each slot's KL.
+// FLAM: the dynamics-learner's live scores (live_* values of its beat): PSNR, DCI, each slot's KL; with
+// --label-latent-actions, the factor-extractor's labels of the workers' own steps (stream_slot*_kl).
 function renderLatentActions() {
   const learner = view.services.find((s) => s.service === 'dynamics-learner' && 'live_psnr' in s.values);
   $('latent-panel').hidden = !learner;
   if (!learner) return;
   const v = learner.values;
+  const labeller = view.services.find((s) => s.service === 'factor-extractor' && 'labelled_steps' in s.values);
+  const stream = labeller ? labeller.values : {};
   setText('latent-psnr', Number.isFinite(v.live_psnr) ? v.live_psnr.toFixed(2) : '–');
   setText('latent-dci-d', fmt.ratio(v.live_dci_d));
   setText('latent-dci-c', fmt.ratio(v.live_dci_c));
   setText('latent-dci-i', fmt.ratio(v.live_dci_i));
   setText('latent-sub', `FLAM: the learner's model at update ${fmt.int(v.updates)} on fixed unseen videos`);
+  $('latent-labels').hidden = !labeller;
+  if (labeller) {
+    setText('latent-labels', `The workers' stream: ${fmt.int(stream.labelled_steps)} steps labelled with weights `
+      + `v${fmt.int(stream.labels_weights_version)} (${fmt.int(stream.unlabelled_steps)} before trained weights)`);
+  }
   const slots = Object.keys(v).filter((k) => /^live_slot\d+_kl$/.test(k))
     .sort((a, b) => parseInt(a.slice(9), 10) - parseInt(b.slice(9), 10));
   const most = Math.max(1e-9, ...slots.map((k) => v[k]));
   const rows = slots.map((k) => {
+    const slot = k.slice(9, -3);
     const bar = html('span', { className: 'latent-bar' });
     bar.style.width = `${(100 * Math.max(v[k], 0) / most).toFixed(1)}%`;
-    return html('tr', { data: { slot: k.slice(9, -3) } }, [html('td', { text: `slot ${k.slice(9, -3)}` }),
-      html('td', { text: fmt.cmi(v[k]) }), html('td', { className: 'bar-cell' }, [bar])]);
+    const cells = [html('td', { text: `slot ${slot}` }), html('td', { text: fmt.cmi(v[k]) }),
+      html('td', { className: 'bar-cell' }, [bar])];
+    if (labeller) {
+      const kl = stream[`stream_slot${slot}_kl`];
+      cells.push(html('td', { className: 'stream-kl', text: Number.isFinite(kl) ? fmt.cmi(kl) : '–' }));
+    }
+    return html('tr', { data: { slot } }, cells);
   });
-  $('latent-slots').replaceChildren(html('tr', {}, [html('th', { text: 'slot' }), html('th', { text: 'KL (nats)' }),
-    html('th', { text: '' })]), ...rows);
+  const head = [html('th', { text: 'slot' }), html('th', { text: 'KL (nats)' }), html('th', { text: '' })];
+  if (labeller) head.push(html('th', { text: "KL, workers' stream" }));
+  $('latent-slots').replaceChildren(html('tr', {}, head), ...rows);
 }
 
 // Local graphs but no global graph (a method without one): hide the global scores and heat maps.
