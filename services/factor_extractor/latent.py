@@ -15,6 +15,7 @@ not published. Labels of a batch come from one weights version, which the messag
 from __future__ import annotations
 
 import json
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,11 @@ from services.runtime.accept import VersionGate, check_weights_config
 from services.runtime.checkpoint import check_fingerprint, load_checkpoint, save_checkpoint
 
 
+RECENT_BATCHES = 64
+"""Batches the recent per-slot KL is taken over (16,384 steps of 256-step batches): what the labels of
+the current weights carry, where the run's mean mixes every version since the first."""
+
+
 class LatentActionLabeller:
     """Labels FrameBatches with the per-slot latent actions of the newest FLAM weights taken."""
 
@@ -47,6 +53,8 @@ class LatentActionLabeller:
         self.labelled_steps, self.labelled_batches, self.unlabelled_steps = 0, 0, 0
         self.kl_sum: np.ndarray | None = None
         """Each slot's KL to N(0, I) summed over every labelled step (nats)."""
+        self.recent: deque[tuple[int, np.ndarray]] = deque(maxlen=RECENT_BATCHES)
+        """(steps, per-slot KL sum) of the newest labelled batches."""
 
     @property
     def ready(self) -> bool:
@@ -83,7 +91,8 @@ class LatentActionLabeller:
                                                 f"reads {size}x{size} ({self.model.grid_size} cells of {FEATURE_STRIDE} pixels)")
         mean, log_sigma = self.posterior(batch.frames, batch.state_frame, batch.next_frame)
         kl = gaussian_kl(mean, log_sigma).sum(0).double().numpy()
-        self.kl_sum = kl if self.kl_sum is None or len(self.kl_sum) != len(kl) else self.kl_sum + kl
+        self.kl_sum = kl if self.kl_sum is None else self.kl_sum + kl
+        self.recent.append((len(batch), kl))
         self.labelled_steps += len(batch)
         self.labelled_batches += 1
         return LatentActions(kind=self.cfg.method, worker_id=batch.worker_id, seq=batch.seq,
@@ -102,7 +111,14 @@ class LatentActionLabeller:
         return mean[:, 0], log_sigma[:, 0]
 
     def slot_kl(self) -> list[float]:
-        """Each slot's mean KL to N(0, I) over the labelled steps (nats per transition: what it carries)."""
+        """Each slot's mean KL to N(0, I) over the newest :data:`RECENT_BATCHES` labelled batches (nats per
+        transition: what its labels carry under the current weights)."""
+        if not self.recent:
+            return []
+        return [float(v) for v in sum(kl for _, kl in self.recent) / sum(n for n, _ in self.recent)]
+
+    def run_slot_kl(self) -> list[float]:
+        """Each slot's mean KL over every step labelled in the run, whatever the weights version."""
         if self.kl_sum is None or not self.labelled_steps:
             return []
         return [float(v) for v in self.kl_sum / self.labelled_steps]
@@ -111,14 +127,16 @@ class LatentActionLabeller:
         return {"ready": float(self.ready), "labels_weights_version": self.weights_version,
                 "labelled_steps": self.labelled_steps, "labelled_batches": self.labelled_batches,
                 "unlabelled_steps": self.unlabelled_steps, "env_steps": self.labelled_steps + self.unlabelled_steps,
-                **{f"stream_slot{k}_kl": v for k, v in enumerate(self.slot_kl())}}
+                **{f"stream_slot{k}_kl": v for k, v in enumerate(self.slot_kl())},
+                **{f"run_slot{k}_kl": v for k, v in enumerate(self.run_slot_kl())}}
 
     def fingerprint(self) -> str:
         return json.dumps({"mode": "latent-actions", "env": self.env.env_id, "method": self.cfg.method,
                            "env_config": json.loads(self.env.config_json)}, sort_keys=True)
 
     def checkpoint(self, path: Path) -> None:
-        """The counts and KL sums (the summary's figures cover the whole run across a restart) and the last
+        """The counts and KL sums (the run's figures cover the whole run across a restart; the recent window
+        starts afresh) and the last
         weights version taken (its first version after a restart is bounded by it); no model: a restarted
         labeller takes the learner's newest weights from the bus."""
         save_checkpoint({"fingerprint": self.fingerprint(), "labelled_steps": self.labelled_steps,

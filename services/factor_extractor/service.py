@@ -150,8 +150,8 @@ class _LabelMetrics:
                                     "Steps received before FLAM weights past the autoencoder phase were held")
         self.sent = m.counter("causeway_latent_action_bytes_published", "Bytes of LatentActions published")
         self.version = m.gauge("causeway_latent_action_weights_version", "Version of the FLAM weights labelling")
-        self.kl = m.gauge("causeway_latent_action_kl", "Each slot's mean KL to N(0, I) over the labelled steps "
-                          "(nats per transition: what its latent action carries)", ("slot",))
+        self.kl = m.gauge("causeway_latent_action_kl", "Each slot's mean KL to N(0, I) over the newest labelled "
+                          "batches (nats per transition: what its latent action carries)", ("slot",))
         self.label_seconds = m.histogram("causeway_label_seconds", "Time to label one FrameBatch",
                                          (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0))
         self.checkpoints = m.counter("causeway_checkpoints", "Checkpoints written")

@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 from causal.fg_ari import BOUND_FG_ARI
+from services.factor_extractor.latent import RECENT_BATCHES
 from proto.messages import ServiceStats
 
 SCORES = ("fg_ari", "identity_slot_accuracy", "identity_frame_accuracy", "published_identity_slot_accuracy",
@@ -36,14 +37,19 @@ def slot_facts(stats: ServiceStats | None) -> dict[str, Any]:
 def label_facts(stats: ServiceStats | None) -> dict[str, Any]:
     """``{"latent_labels": {...}}`` from a labelling factor-extractor's last beat ({} for none, or for the
     slots mode): the steps it labelled and those that came before trained FLAM weights, the weights version
-    it labelled with last, and each slot's mean KL to N(0, I) over the labelled steps (``slot_kl``, nats per
-    transition: what the labels of that slot carry on the workers' own stream)."""
+    it labelled with last, and each slot's mean KL to N(0, I) (nats per transition: what the labels of that
+    slot carry on the workers' own stream) over its newest :data:`RECENT_BATCHES` batches (``slot_kl``) and over the run
+    (``run_slot_kl``, every weights version since the first)."""
     if stats is None or "labelled_steps" not in stats.values:
         return {}
     v = stats.values
-    kl = [float(v[f"stream_slot{k}_kl"]) for k in range(len(v)) if f"stream_slot{k}_kl" in v]
+
+    def per_slot(prefix: str) -> list[float]:
+        return [float(v[f"{prefix}{k}_kl"]) for k in range(len(v)) if f"{prefix}{k}_kl" in v]
+
     return {"latent_labels": {"evaluation": "factor-extractor: the env-workers' steps labelled with the newest FLAM "
-                                            "weights' per-slot posteriors (clips s_t, s_t+1); slot_kl over every "
-                                            "labelled step",
+                                            "weights' per-slot posteriors (clips s_t, s_t+1); slot_kl over its newest "
+                                            f"{RECENT_BATCHES} batches, run_slot_kl over every labelled step",
                               **{k: int(v.get(k, 0)) for k in ("labelled_steps", "labelled_batches", "unlabelled_steps")},
-                              "weights_version": int(v.get("labels_weights_version", 0)), "slot_kl": kl}}
+                              "weights_version": int(v.get("labels_weights_version", 0)),
+                              "slot_kl": per_slot("stream_slot"), "run_slot_kl": per_slot("run_slot")}}

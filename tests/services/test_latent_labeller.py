@@ -6,6 +6,7 @@ phase; weights or frames the model cannot read are refused."""
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ from services.dynamics_learner.core import DynamicsLearnerCore
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.factor_extractor.config import FactorExtractorConfig
-from services.factor_extractor.latent import LatentActionLabeller
+from services.factor_extractor.latent import RECENT_BATCHES, LatentActionLabeller
 from services.runtime.config import build_config
 from services.supervisor.report_slots import label_facts, slot_facts
 
@@ -88,6 +89,7 @@ def test_labels_are_each_steps_clip_posterior_from_the_newest_weights() -> None:
             np.testing.assert_allclose(out.log_sigma[t], log_sigma[0, 0].numpy(), rtol=1e-4, atol=1e-5)
     kl = gaussian_kl(torch.from_numpy(out.mean), torch.from_numpy(out.log_sigma)).double().mean(0).numpy()
     np.testing.assert_allclose(labeller.slot_kl(), kl, rtol=1e-5)
+    assert labeller.run_slot_kl() == labeller.slot_kl()  # one batch: the recent window is the run
     progress = labeller.progress()
     assert progress["labelled_steps"] == len(batch) and progress["labels_weights_version"] == weights.version
     assert [progress[f"stream_slot{i}_kl"] for i in range(k)] == labeller.slot_kl()
@@ -95,7 +97,27 @@ def test_labels_are_each_steps_clip_posterior_from_the_newest_weights() -> None:
     facts = label_facts(beat)["latent_labels"]
     assert (facts["labelled_steps"], facts["unlabelled_steps"], facts["weights_version"]) == (48, 96, weights.version)
     np.testing.assert_allclose(facts["slot_kl"], kl, rtol=1e-5)
+    np.testing.assert_allclose(facts["run_slot_kl"], kl, rtol=1e-5)
     assert slot_facts(beat) == {}  # the slots block is the other mode's
+
+
+def test_the_recent_kl_follows_the_newest_batches_and_the_runs_keeps_them_all() -> None:
+    worker = _worker()
+    learner = _learner(worker, updates=3)
+    labeller = _labeller(worker)
+    labeller.load_weights(_round_trip(learner))
+    labeller.recent = deque(maxlen=1)  # a window of one batch (RECENT_BATCHES in a run)
+    per_batch = []
+    for _ in range(2):
+        out = labeller.label(worker.frames_of(worker.collect()))
+        per_batch.append(gaussian_kl(torch.from_numpy(out.mean), torch.from_numpy(out.log_sigma)).double().mean(0).numpy())
+        for _ in range(20):  # the next batch is labelled by newer weights
+            learner.train_step()
+        labeller.load_weights(_round_trip(learner))
+    assert RECENT_BATCHES >= 16
+    np.testing.assert_allclose(labeller.slot_kl(), per_batch[1], rtol=1e-5)
+    np.testing.assert_allclose(labeller.run_slot_kl(), (per_batch[0] + per_batch[1]) / 2, rtol=1e-5)
+    assert np.abs(per_batch[0] - per_batch[1]).max() > 1e-3 * np.abs(per_batch[1]).max()  # other weights, other KL
 
 
 def test_weights_and_frames_the_model_cannot_read_are_refused() -> None:
@@ -124,6 +146,7 @@ def test_a_restarted_labeller_keeps_its_counts_and_bounds_its_first_version(tmp_
     labeller.checkpoint(tmp_path / "x.pt")
     again = _labeller(worker)
     assert again.restore(tmp_path / "x.pt")
-    assert again.labelled_steps == labeller.labelled_steps and again.slot_kl() == labeller.slot_kl()
+    assert again.labelled_steps == labeller.labelled_steps and again.run_slot_kl() == labeller.run_slot_kl()
+    assert again.slot_kl() == []  # the recent window starts afresh
     assert again.versions.known == labeller.weights_version and not again.ready
     assert not _labeller(worker).restore(tmp_path / "missing.pt")

@@ -152,7 +152,7 @@ function renderLatentActions() {
     return html('tr', { data: { slot } }, cells);
   });
   const head = [html('th', { text: 'slot' }), html('th', { text: 'KL (nats)' }), html('th', { text: '' })];
-  if (labeller) head.push(html('th', { text: "KL, workers' stream" }));
+  if (labeller) head.push(html('th', { text: "KL, workers' stream (newest labels)" }));
   $('latent-slots').replaceChildren(html('tr', {}, head), ...rows);
 }
 
