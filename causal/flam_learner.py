@@ -3,8 +3,8 @@ the factored latent action model (eqs. 8.2-8.6, :mod:`causal.flam`), trained on 
 
 The learner's bus carries transitions, not frames (frames go to the factor-extractor, which in a run
 with ``--label-latent-actions`` labels them with this model's latent actions:
-:mod:`services.factor_extractor.latent`), so, as Dyn-O's trainer does, the trainer draws its frames itself: each replayed transition's state and next state (the agents'
-grid positions) are drawn with ``multigrid-agents``' renderer
+:mod:`services.factor_extractor.latent`), so, as Dyn-O's trainer does, the trainer draws its frames
+itself: each replayed transition's state and next state (the agents' grid positions) are drawn with ``multigrid-agents``' renderer
 (:meth:`envs.multigrid_agents.MultiGridAgentsEnv.render_positions`), with the renderer's exact
 segments as the optional mask prior. Phases by update count, Algorithm 9's order:
 

@@ -293,7 +293,8 @@ class EnvWorkerCore:
         return self.frames_of(self.collect(steps))
 
     def frames_of(self, batch: TransitionBatch) -> FrameBatch:
-        """The frames of ``batch``, the batch :meth:`collect` returned last (``publish_frames`` or ``frames_beside``)."""
+        """The frames of ``batch``, the batch :meth:`collect` returned last (``publish_frames`` or
+        ``frames_beside``)."""
         if self.recorder is None:
             raise RuntimeError("this worker does not record frames (publish_frames and frames_beside are off)")
         return self.recorder.pack(batch)

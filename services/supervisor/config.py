@@ -94,7 +94,8 @@ class RunConfig(RunSettings):
     intrinsic_reward: IntrinsicRewardConfig = section(IntrinsicRewardConfig, prefix="intrinsic",
                                                       exclude=SERVICE_FIELDS + ("reward",))
     extractor: FactorExtractorConfig = section(FactorExtractorConfig, prefix="extractor", exclude=SERVICE_FIELDS + ("mode",),
-                                               help="the factor-extractor of a run with --worker-publish-frames true")
+                                               help="the factor-extractor of a run with --worker-publish-frames true "
+                                                    "(its slots) or --label-latent-actions true (FLAM's labels)")
 
     def __post_init__(self) -> None:
         super().__post_init__()

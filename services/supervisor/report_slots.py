@@ -15,8 +15,8 @@ from __future__ import annotations
 from typing import Any
 
 from causal.fg_ari import BOUND_FG_ARI
-from services.factor_extractor.latent import RECENT_BATCHES
 from proto.messages import ServiceStats
+from services.factor_extractor.latent import RECENT_BATCHES
 
 SCORES = ("fg_ari", "identity_slot_accuracy", "identity_frame_accuracy", "published_identity_slot_accuracy",
           "published_identity_frame_accuracy")
@@ -37,9 +37,9 @@ def slot_facts(stats: ServiceStats | None) -> dict[str, Any]:
 def label_facts(stats: ServiceStats | None) -> dict[str, Any]:
     """``{"latent_labels": {...}}`` from a labelling factor-extractor's last beat ({} for none, or for the
     slots mode): the steps it labelled and those that came before trained FLAM weights, the weights version
-    it labelled with last, and each slot's mean KL to N(0, I) (nats per transition: what the labels of that
-    slot carry on the workers' own stream) over its newest :data:`RECENT_BATCHES` batches (``slot_kl``) and over the run
-    (``run_slot_kl``, every weights version since the first)."""
+    it labelled with last, and each slot's mean KL to N(0, I) (nats per transition: what the labels of
+    that slot carry on the workers' own stream) over its newest :data:`RECENT_BATCHES` batches
+    (``slot_kl``) and over the run (``run_slot_kl``, every weights version since the first)."""
     if stats is None or "labelled_steps" not in stats.values:
         return {}
     v = stats.values
