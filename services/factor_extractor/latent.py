@@ -87,8 +87,9 @@ class LatentActionLabeller:
             return None
         size = self.model.grid_size * FEATURE_STRIDE
         if batch.frames.shape[1:3] != (size, size):
-            raise ProtocolError("inconsistent", f"FrameBatch: frames {batch.frames.shape[1:3]}, the FLAM model "
-                                                f"reads {size}x{size} ({self.model.grid_size} cells of {FEATURE_STRIDE} pixels)")
+            raise ProtocolError("inconsistent", f"FrameBatch: frames {batch.frames.shape[1:3]}, the FLAM model reads "
+                                                f"{size}x{size} ({self.model.grid_size} cells of {FEATURE_STRIDE} "
+                                                "pixels)")
         mean, log_sigma = self.posterior(batch.frames, batch.state_frame, batch.next_frame)
         kl = gaussian_kl(mean, log_sigma).sum(0).double().numpy()
         self.kl_sum = kl if self.kl_sum is None else self.kl_sum + kl
