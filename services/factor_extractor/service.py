@@ -20,8 +20,7 @@ from pathlib import Path
 from prometheus_client import Counter
 
 from proto import topics
-from proto.codec import ProtocolError, decode
-from proto.messages import EnvSpec, FrameBatch, Weights
+from proto.messages import FrameBatch, Weights
 from services.bus.base import Transport
 from services.factor_extractor.config import FactorExtractorConfig
 from services.factor_extractor.core import FactorExtractorCore
@@ -57,7 +56,7 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
     frames = shell.inbox("frames", FrameBatch, maxsize=64)
     shell.subscribe(topics.frames(cfg.run_id), frames)
     latest_spec = shell.transport.serve_latest(topics.env_spec(cfg.run_id))
-    env = _wait_for_frames_spec(shell)
+    env = shell.wait_for_spec(key=topics.frames_spec(cfg.run_id))
     if env is None:
         latest_spec.close()
         shell.close()
@@ -120,19 +119,6 @@ def _identity_line(matching: dict[str, float]) -> str:
             f"{matching['identity_frame_accuracy']:.3f} of frames matched; FG-ARI {matching.get('fg_ari', float('nan')):.3f})")
 
 
-def _wait_for_frames_spec(shell: ServiceShell, poll_s: float = 0.5) -> EnvSpec | None:
-    """Query the frame-publishing env-workers' EnvSpec until one answers (None if stopped first)."""
-    while not shell.stopping.is_set():
-        for key, payload in shell.transport.query(topics.frames_spec(shell.cfg.run_id), timeout=poll_s):
-            try:
-                return decode(payload, EnvSpec)
-            except ProtocolError as exc:
-                shell.metrics.reject(exc.reason)
-                log.warning("rejected EnvSpec from %s: %s", key, exc)
-        shell.stopping.wait(poll_s)
-    return None
-
-
 def _ingest(shell: ServiceShell, core: FactorExtractorCore, batch: FrameBatch, metrics: _Metrics) -> None:
     t0 = time.perf_counter()
     out = shell.guarded(core.ingest, batch)
@@ -182,7 +168,7 @@ def run_labeller(cfg: FactorExtractorConfig, transport: Transport | None = None)
         return
     core = LatentActionLabeller(cfg, env)
     ckpt = shell.resume(core)
-    _load_weights(shell, core, _query_weights(shell), metrics)
+    _load_weights(shell, core, shell.query(topics.weights(cfg.run_id, cfg.method), Weights), metrics)  # a late joiner
     last_ckpt = time.monotonic()
     try:
         while not shell.stopping.is_set():
@@ -197,18 +183,6 @@ def run_labeller(cfg: FactorExtractorConfig, transport: Transport | None = None)
         core.checkpoint(ckpt)
         shell.beat(core.progress(), force=True)
         shell.close()
-
-
-def _query_weights(shell: ServiceShell) -> list[Weights]:
-    """The learner's newest weights, asked once at start (a late or restarted labeller does not wait)."""
-    found = []
-    for key, payload in shell.transport.query(topics.weights(shell.cfg.run_id, shell.cfg.method), timeout=1.0):
-        try:
-            found.append(decode(payload, Weights))
-        except ProtocolError as exc:
-            shell.metrics.reject(exc.reason)
-            log.warning("rejected Weights from %s: %s", key, exc)
-    return found
 
 
 def _load_weights(shell: ServiceShell, core: LatentActionLabeller, weights: list[Weights], metrics: _LabelMetrics) -> None:

@@ -186,17 +186,25 @@ class ServiceShell:
             elif command.command == "checkpoint":
                 self.checkpoint_requested = True
 
-    def wait_for_spec(self, poll_s: float = 0.5) -> EnvSpec | None:
-        """Query the env-workers' EnvSpec until one answers (None if stopped first)."""
+    def wait_for_spec(self, poll_s: float = 0.5, key: str | None = None) -> EnvSpec | None:
+        """Query the EnvSpec on ``key`` (default: the env-workers' ``env/spec``) until one answers (None if
+        stopped first)."""
         while not self.stopping.is_set():
-            for key, payload in self.transport.query(topics.env_spec(self.cfg.run_id), timeout=poll_s):
-                try:
-                    return decode(payload, EnvSpec)
-                except ProtocolError as exc:
-                    self.metrics.reject(exc.reason)
-                    log.warning("rejected EnvSpec from %s: %s", key, exc)
+            for spec in self.query(key or topics.env_spec(self.cfg.run_id), EnvSpec, timeout=poll_s):
+                return spec
             self.stopping.wait(poll_s)
         return None
+
+    def query(self, key: str, expected: type, timeout: float = 1.0) -> list[Any]:
+        """The decoded answers of a query on ``key``; an answer off the contract is counted and dropped."""
+        found = []
+        for source, payload in self.transport.query(key, timeout=timeout):
+            try:
+                found.append(decode(payload, expected))
+            except ProtocolError as exc:
+                self.metrics.reject(exc.reason)
+                log.warning("rejected %s from %s: %s", expected.__name__, source, exc)
+        return found
 
     def beat(self, values: dict[str, float], force: bool = False) -> None:
         """Publish a ServiceStats progress beat, at most every ``stats_interval_s``."""
