@@ -100,7 +100,7 @@ def ensure_base_images(engine: Engine, log: Path, times: BuildTimes) -> None:
     times.standins_s = time.monotonic() - started
     for old in CACHE.glob("base-images-*.tar"):
         old.unlink()
-    _save(engine, saved, [DEBIAN_STANDIN, python_base, prometheus])
+    _save(engine, saved, [DEBIAN_STANDIN, python_base, prometheus], log)
 
 
 def _debootstrap(rootfs: Path, log: Path) -> float:
@@ -148,12 +148,48 @@ def _build_standin(engine: Engine, kind: str, tag: str, log: Path, files: dict[s
                    env=engine.environ())
 
 
-def _save(engine: Engine, target: Path, images: list[str]) -> float:
+SAVE_HEADROOM = 2.0
+"""A cache is written only where the disk keeps this many times the images' size free (the images'
+size is uncompressed and ``docker save`` writes about that much)."""
+
+
+def _save(engine: Engine, target: Path, images: list[str], log: Path) -> float:
+    """Keep ``images`` in ``target`` for the next run; seconds spent, 0 where nothing was kept.
+
+    The cache only saves time, so a disk too full to hold it (a CI machine has been seen with under
+    300 MB free) skips it, and a save that fails anyway is dropped, both with a line in ``log``:
+    neither fails the test. The old ``target`` goes first, so its space counts as free."""
     started = time.monotonic()
+    target.unlink(missing_ok=True)
     partial = target.with_suffix(".partial")
-    engine.docker("save", "-o", str(partial), *images, timeout=900)
+    need = SAVE_HEADROOM * sum(_image_sizes(engine, images))
+    free = shutil.disk_usage(target.parent).free
+    if free < need:
+        _note(log, f"cache {target.name} not written: {free / 2**20:.0f} MiB free, "
+                   f"{need / 2**20:.0f} MiB wanted ({SAVE_HEADROOM:g}x the images)")
+        return 0.0
+    try:
+        engine.docker("save", "-o", str(partial), *images, timeout=900)
+    except (RuntimeError, subprocess.TimeoutExpired) as exc:
+        for leftover in (partial, *target.parent.glob(f".tmp-{partial.name}*")):
+            leftover.unlink(missing_ok=True)
+        _note(log, f"cache {target.name} not written: {exc}")
+        return 0.0
     os.replace(partial, target)
     return time.monotonic() - started
+
+
+def _image_sizes(engine: Engine, images: list[str]) -> list[int]:
+    sizes = []
+    for image in images:
+        out = engine.docker("image", "inspect", "-f", "{{.Size}}", image, check=False).stdout.decode().strip()
+        sizes.append(int(out) if out.isdigit() else 0)
+    return sizes
+
+
+def _note(log: Path, line: str) -> None:
+    with open(log, "a") as out:
+        out.write(f"\n# {line}\n")
 
 
 def find_links_dir() -> Path:
@@ -218,7 +254,7 @@ def build_project_image(engine: Engine, log: Path, times: BuildTimes) -> None:
     after = _image_ids(engine, [BUILD_STAGE_IMAGE, PROJECT_IMAGE])
     times.project_cached = bool(cache_from) and after == before
     if after != before:
-        times.save_s = _save(engine, saved, [BUILD_STAGE_IMAGE, PROJECT_IMAGE])
+        times.save_s = _save(engine, saved, [BUILD_STAGE_IMAGE, PROJECT_IMAGE], log)
 
 
 def snapshot_worktree(target: Path) -> Path:
