@@ -70,6 +70,7 @@ class Args:
     static_background: bool
     slot_reconstruction: float
     slot_stage_updates: int
+    action_levels: tuple[int, ...]
     out: str
 
 
@@ -110,14 +111,23 @@ def parse_args(argv: list[str] | None = None) -> Args:
                    help="FLAM: weight of an added reconstruction of e_t from its slots (0: eq. 8.6 alone)")
     p.add_argument("--slot-stage-updates", type=int, default=600,
                    help="two-stage: updates of its first stage (slots by reconstruction, with --mask-prior)")
+    p.add_argument("--action-levels", type=int, nargs="+", default=[],
+                   help="FSQ levels of each slot's latent action (sets d_a to their count; FLAM only, no KL): "
+                        "a hard bottleneck instead of the Gaussian")
     p.add_argument("--out", default="", help="write the results as JSON here")
     args = vars(p.parse_args(argv))
+    if args["action_levels"]:
+        if set(args["models"]) - {"flam", "two-stage"}:
+            p.error("--action-levels quantises FLAM's latent actions: use it with --models flam or two-stage")
+        if any(level < 3 or level % 2 == 0 for level in args["action_levels"]):
+            p.error(f"--action-levels must be odd and >= 3 (FSQ), got {args['action_levels']}")
+        args["action_dim"] = len(args["action_levels"])
     if args["num_slots"] == 1 or args["num_slots"] < 0:
         p.error(f"--num-slots must be 0 (agents + 1) or >= 2 (the background's slot and at least one more), got {args['num_slots']}")
     if args["variant"] == "correlated" and args["mask_prior"] == "annealed":
         p.error("--mask-prior annealed points slots at agents in index order, which on the correlated variant is "
                 "the grouping under test: use --mask-prior foreground or none")
-    return Args(**{**args, "models": tuple(args["models"])})
+    return Args(**{**args, "models": tuple(args["models"]), "action_levels": tuple(args["action_levels"])})
 
 
 def sample_clips(features: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, batch: int,
@@ -281,7 +291,7 @@ def main(args: Args) -> dict[str, dict[str, float]]:
                         beta_kl=args.beta_kl, lr=args.lr, lr_final=args.lr_final,
                         lr_decay_updates=args.updates if args.lr_decay == "cosine" else 0, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator,
                         temporal_attention=not args.no_temporal_attention, coupling=args.coupling,
-                        static_background=args.static_background)
+                        static_background=args.static_background, action_levels=args.action_levels)
     autoencoder = FSQAutoencoder(config.levels)
     start = time.time()
     fit_autoencoder(autoencoder, train_frames.flatten(0, 1), args.ae_updates, seed=args.seed)

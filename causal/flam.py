@@ -58,6 +58,10 @@ class FLAMConfig:
                                           "and its posterior N(0, I), so its next value comes from the slots "
                                           "at t alone and a moving object it holds is left unexplained (not in "
                                           "the chapter, whose slots are all alike)")
+    action_levels: tuple[int, ...] = doc((), "FSQ levels of each slot's latent action (one per channel, so "
+                                            "d_a = their count): alpha^i is the IDM's mean quantised, with no "
+                                            "noise and no KL term, a hard bottleneck of prod(levels) codes per "
+                                            "slot (not in the chapter, whose alpha is Gaussian); (): Gaussian")
     lr: float = doc(1e-3, "Adam learning rate")
     lr_decay_updates: int = doc(0, "cosine decay of the learning rate from lr to lr_final over this many "
                                    "updates, constant after (0: constant lr; not in the chapter)")
@@ -71,6 +75,9 @@ class FLAMConfig:
             raise ValueError(f"aggregator must be 'cross-attention' or 'broadcast', got {self.aggregator!r}")
         if self.coupling not in ("per-slot", "global"):
             raise ValueError(f"coupling must be 'per-slot' or 'global', got {self.coupling!r}")
+        if self.action_levels and len(self.action_levels) != self.action_dim:
+            raise ValueError(f"action_levels {self.action_levels} give d_a = {len(self.action_levels)}, "
+                             f"but action_dim is {self.action_dim}")
         if self.lr_decay_updates < 0 or not self.lr_final > 0:
             raise ValueError("lr_decay_updates must be >= 0 and lr_final > 0")
         if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0) or self.slot_dim % 4:
@@ -114,6 +121,7 @@ class FLAM(nn.Module):
         self.aggregator = (BroadcastAggregator if config.aggregator == "broadcast" else Aggregator)(d_e, num_tokens, d)
         self.slot_decoder = (SlotDecoder(num_tokens, d_e, SlotConfig(slot_dim=d, decoder_hidden=d))
                              if config.slot_reconstruction > 0 else None)
+        self.action_fsq = FSQ(config.action_levels) if config.action_levels else None
 
     def forward(self, features: torch.Tensor, sample: bool = True, allowed: torch.Tensor | None = None) -> LAMOutput:
         slots, attention = self.factorizer(features, allowed)
@@ -123,7 +131,7 @@ class FLAM(nn.Module):
         b, t, k, d = slots.shape
         current, nxt = slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d)
         mu, log_sigma = self._posterior(current, nxt)
-        alpha = sample_latent(mu, log_sigma, sample)
+        alpha = mu if self.action_fsq is not None else sample_latent(mu, log_sigma, sample)
         if self.config.static_background:
             alpha = torch.cat([torch.zeros_like(alpha[:, :1]), alpha[:, 1:]], dim=1)
         predicted_slots = self.fdm(current, alpha)
@@ -147,8 +155,11 @@ class FLAM(nn.Module):
 
     def _posterior(self, current: torch.Tensor, nxt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The IDM's posterior ``[N, K, d_a]`` (eq. 8.4); with ``static_background``, slot 0's is N(0, I)
-        (mean 0, log sigma 0: no KL, and alpha 0 where it is used)."""
+        (mean 0, log sigma 0: no KL, and alpha 0 where it is used). With ``action_levels`` the mean is the
+        quantised code and the log sigma 0 (a point mass: :func:`lam_loss` then takes no KL)."""
         mu, log_sigma = self.idm(current, nxt)
+        if self.action_fsq is not None:
+            mu, log_sigma = self.action_fsq(mu), torch.zeros_like(log_sigma)
         if self.config.static_background:
             mu = torch.cat([torch.zeros_like(mu[:, :1]), mu[:, 1:]], dim=1)
             log_sigma = torch.cat([torch.zeros_like(log_sigma[:, :1]), log_sigma[:, 1:]], dim=1)
@@ -167,6 +178,8 @@ class MonolithicLAM(nn.Module):
 
     def __init__(self, config: FLAMConfig, num_tokens: int) -> None:
         super().__init__()
+        if config.action_levels:
+            raise ValueError("the monolithic model's latent is Gaussian: action_levels is FLAM's alone")
         d_e, d, size = len(config.levels), config.slot_dim, config.num_slots * config.action_dim
         self.config = config
         self.embed_pair = TokenEmbedding(2 * d_e, num_tokens, d)
@@ -267,7 +280,8 @@ class LAMTrainer:
         for group in self.optimizer.param_groups:
             group["lr"] = cosine_lr(self.config.lr, self.config.lr_final, self.updates, self.config.lr_decay_updates)
         out = self.model(features, allowed=self.masks_for(labels))
-        loss, terms = lam_loss(features, out, self.config.beta_kl, self.config.slot_reconstruction)
+        beta_kl = 0.0 if self.config.action_levels else self.config.beta_kl
+        loss, terms = lam_loss(features, out, beta_kl, self.config.slot_reconstruction)
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)

@@ -316,3 +316,29 @@ def test_a_static_background_slot_has_no_latent_action_and_costs_no_kl() -> None
     torch.manual_seed(1)
     static(features, sample=True)  # sampling draws noise for every slot; slot 0's must not reach the FDM
     assert torch.all(seen[0][:, 0] == 0) and bool((seen[0][:, 1:] != 0).any())
+
+
+def test_quantised_latent_actions_are_codes_without_noise_or_kl() -> None:
+    """``action_levels``: each slot's alpha is its IDM mean on the FSQ grid (5 x 3 codes here), the
+    same with and without sampling; the trainer's loss is the prediction error alone, and the
+    gradient reaches the IDM through the straight-through rounding."""
+    import dataclasses
+    config = dataclasses.replace(CONFIG, action_dim=2, action_levels=(5, 3))
+    torch.manual_seed(0)
+    model = FLAM(config, TOKENS).train()
+    features = _features(b=2, t=4)
+    out = model(features, sample=True)
+    grid = out.mu * torch.tensor([2.0, 1.0])
+    torch.testing.assert_close(grid, grid.round())
+    assert torch.all(out.log_sigma == 0)
+    torch.testing.assert_close(model(features, sample=True).predicted, out.predicted)
+    torch.testing.assert_close(model.infer(features), out.mu)
+    trainer = LAMTrainer(model, seed=0)
+    before = [p.detach().clone() for p in model.idm.to_mu.parameters()]
+    terms = trainer.update(features)
+    assert terms["loss"] == pytest.approx(terms["prediction_sse"], rel=1e-6)
+    assert any(not torch.equal(b, a) for b, a in zip(before, model.idm.to_mu.parameters()))
+    with pytest.raises(ValueError, match="action_dim"):
+        dataclasses.replace(CONFIG, action_levels=(5, 3))
+    with pytest.raises(ValueError, match="FLAM's alone"):
+        MonolithicLAM(config, TOKENS)
