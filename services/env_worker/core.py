@@ -189,7 +189,8 @@ class EnvWorkerCore:
             self.skild = SkildActor(seed)
             """SkiLD's skill/task policies (``cfg.skild``): the only collection policy, once loaded."""
         self.observation, info = self.env.reset(seed=seed)
-        self.recorder = FrameRecorder(info, cfg.frame_stride) if cfg.publish_frames or cfg.frames_beside else None
+        self.recorder = (FrameRecorder(info, cfg.frame_stride, labels=cfg.publish_frames)
+                         if cfg.publish_frames or cfg.frames_beside else None)
         self.episodes = EpisodeStats(len(getattr(self.env.unwrapped, "stage_names", ())))
         self.first_episode = GENERATION_EPISODES * generation
         self.episode, self.step_in_episode = self.first_episode, 0

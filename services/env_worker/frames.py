@@ -22,17 +22,20 @@ def has_frames(info: dict[str, Any]) -> bool:
 class FrameRecorder:
     """Collects the frames of one batch of steps and packs them with the batch's TransitionBatch."""
 
-    def __init__(self, reset_info: dict[str, Any], stride: int = 1) -> None:
+    def __init__(self, reset_info: dict[str, Any], stride: int = 1, labels: bool = True) -> None:
+        """``labels``: pack the frames' label maps where the env gives masks (the slot extractor's mask
+        prior and identity head read them; the latent-action labeller does not, so frames sent beside
+        transitions go without them: a quarter of their bytes at 32x32)."""
         if not has_frames(reset_info):
             raise ValueError("this environment renders no frames (info['frame'], uint8 [H, W, 3]): publishing "
                              "frames needs one that does (chemical-pixels)")
-        self.stride = stride
+        self.stride, self.labels = stride, labels
         self.current = self._frame(reset_info)
         self.begin()
 
     def _frame(self, info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
         s = self.stride
-        masks = info.get("masks")
+        masks = info.get("masks") if self.labels else None
         labels = np.argmax(masks, axis=0).astype(np.uint8)[::s, ::s] if masks is not None else None
         return np.ascontiguousarray(info["frame"][::s, ::s]), labels
 

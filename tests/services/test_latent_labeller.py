@@ -57,6 +57,9 @@ def test_frames_beside_match_the_transitions() -> None:
     render = worker.env.unwrapped
     drawn, _ = render.render_positions(batch.next_state.reshape(len(batch), -1, 2).round().astype(np.int64))
     np.testing.assert_array_equal(frames.frames[frames.next_frame], drawn)
+    assert frames.labels is None, "the labeller reads no label maps: frames beside transitions go without them"
+    published = EnvWorkerCore(build_config(EnvWorkerConfig, env="multigrid-agents", batch_steps=48, publish_frames=True))
+    assert published.frames_of(published.collect()).labels is not None, "the slot extractor's mask prior reads them"
     with pytest.raises(ValueError, match="exclude each other"):
         build_config(EnvWorkerConfig, env="multigrid-agents", frames_beside=True, publish_frames=True)
 
