@@ -104,12 +104,13 @@ $(GRAFANA_SECRET):
 # Roles on the bus (docs/bus-roles.md): every role's credentials, the router's users file and its
 # configuration with authentication and access control, generated once per checkout. The keys name
 # the run id and the method: after changing CAUSEWAY_RUN_ID or CAUSEWAY_METHOD, `rm -r deploy/secrets`
-# and `make up` again (new passwords need the whole stack restarted).
+# and `make up` again (new passwords need the whole stack restarted). CAUSEWAY_EXTRACTOR=frames|latent
+# adds the factor-extractor's role for deploy/compose.frames.yaml or deploy/compose.labels.yaml.
 BUS_SECRETS := deploy/secrets/router.json5
 
 $(BUS_SECRETS): | $(STAMP)
 	@$(PY) -m services.cli bus-secrets --run $${CAUSEWAY_RUN_ID:-compose} --method $${CAUSEWAY_METHOD:-cdl} \
-	  --out $(patsubst %/secrets/,%,$(dir $@)) --file-mode 644
+	  --extractor $${CAUSEWAY_EXTRACTOR:-none} --out $(patsubst %/secrets/,%,$(dir $@)) --file-mode 644
 
 bus-secrets: $(BUS_SECRETS)
 

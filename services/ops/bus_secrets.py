@@ -1,7 +1,8 @@
 """``causeway bus-secrets``: a run's bus credentials and router configuration for a stack without a
 supervisor (compose, Kubernetes), which therefore cannot draw them itself.
 
-    causeway bus-secrets --run compose --method cdl --out deploy [--router-config deploy/zenoh/router.json5]
+    causeway bus-secrets --run compose --method cdl --out deploy [--extractor none|frames|latent]
+                         [--router-config deploy/zenoh/router.json5]
                          [--users-file /run/secrets/causeway-router-users] [--dashboard-run '*'] [--file-mode 644]
                          [--listen ENDPOINT ...] [--tls-name NAME ...] [--tls-dir DIR] [--mesh-user NAME ...]
                          [--join tls/HOST:PORT ... --join-credentials FILE --join-ca FILE]
@@ -12,6 +13,12 @@ Writes into ``<out>/secrets`` (mode 700; files 600) what a local run keeps in ``
 read from ``--users-file``, where the router's container mounts ``router-users``) and the access
 control added. Mount each service's ``<role>.credentials`` as a secret and point
 ``CAUSEWAY_BUS_CREDENTIALS`` at it. Fresh passwords every time: restart the whole stack after.
+
+``--extractor``: a stack with a factor-extractor (deploy/compose.frames.yaml, deploy/compose.labels.yaml)
+adds its role and changes the env-workers': ``frames``, the workers publish frames instead of
+transitions and the extractor publishes slot transitions (``causeway run --worker-publish-frames
+true``); ``latent``, the workers publish frames beside their transitions and the extractor labels
+them with the learner's latent actions (``causeway run --label-latent-actions true``).
 
 ``--file-mode 644`` is for Compose: outside Swarm a compose secret is a bind mount of the file with
 its host owner and mode (``uid``/``gid``/``mode`` are ignored), and the containers run as other users
@@ -47,6 +54,8 @@ from services.bus.roles import ROLES, access_control, new_passwords, run_roles
 from services.bus.router import ROUTER_COMMON_NAME, with_meshed_routers
 from services.ops.bus_tls import CA_CERTIFICATE, CA_KEY, write_tls
 
+EXTRACTORS = ("none", "frames", "latent")
+"""``--extractor``: which factor-extractor the stack runs, if any (:func:`services.bus.roles.run_roles`)."""
 ROUTER_FILE = "router.json5"
 ROUTER_ROOTS = "router-roots.pem"
 """The CAs the router verifies other routers against when it connects to them (its own, the joined one's)."""
@@ -85,6 +94,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--run", required=True, help="run id of the stack (compose: compose)")
     parser.add_argument("--method", default="cdl", help="the stack's --method (names its weights and graph topics)")
     parser.add_argument("--out", required=True, help="directory whose secrets/ to write into (created, mode 700)")
+    parser.add_argument("--extractor", choices=EXTRACTORS, default="none",
+                        help="the stack's factor-extractor: none; frames (workers publish frames, the extractor slot "
+                             "transitions); latent (frames beside transitions, the extractor latent-action labels)")
     parser.add_argument("--router-config", default="deploy/zenoh/router.json5", help="the router configuration to extend")
     parser.add_argument("--users-file", default="/run/secrets/causeway-router-users",
                         help="where the router will read router-users (its path inside the router's container)")
@@ -159,7 +171,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _check(parser, args, listen)
     try:
         topics.alive(args.run)
-        roles = run_roles(args.run, args.method, dashboard_run=args.dashboard_run)
+        roles = run_roles(args.run, args.method, dashboard_run=args.dashboard_run, frames=args.extractor == "frames",
+                          latent=args.extractor == "latent")
         acl = with_meshed_routers(access_control(roles), args.run, usernames=args.mesh_user,
                                   cert_common_names=[ROUTER_COMMON_NAME] if args.join else [])
         passwords = new_passwords(tuple(roles) + tuple(args.mesh_user))

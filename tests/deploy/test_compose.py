@@ -43,23 +43,29 @@ def compose() -> dict[str, Any]:
     return load_yaml(result.stdout)
 
 
-LOCAL_STACK_ONLY = {"factor-extractor"}
-"""Services the compose stack does not run, each said so in deploy/README.md: the factor-extractor
-serves frames runs (``--worker-publish-frames true``), which only the local stack starts."""
+EXTRACTOR_OVERRIDES = {"deploy/compose.frames.yaml": ("frames", "slots"),
+                       "deploy/compose.labels.yaml": ("latent", "latent-actions")}
+"""Overrides that add the factor-extractor: file -> (bus-secrets' --extractor, the extractor's mode)."""
+IN_OVERRIDES = {"factor-extractor": tuple(EXTRACTOR_OVERRIDES)}
+"""Services compose.yaml leaves out (a plain stack has no frames), and the overrides that run them."""
 
 
 def _service_modules() -> dict[str, str]:
     """Compose service name -> module, for every ``services/<pkg>/__main__.py`` the compose stack runs."""
     mains = sorted((REPO / "services").glob("*/__main__.py"))
     names = {main.parent.name.replace("_", "-"): f"services.{main.parent.name}" for main in mains}
-    return {name: module for name, module in names.items() if name not in LOCAL_STACK_ONLY}
+    return {name: module for name, module in names.items() if name not in IN_OVERRIDES}
 
 
-def test_a_service_left_out_of_compose_is_said_to_be_in_the_deploy_readme() -> None:
+def test_a_service_left_out_of_compose_runs_in_overrides_the_deploy_readme_names() -> None:
     text = (REPO / "deploy" / "README.md").read_text()
-    for name in LOCAL_STACK_ONLY:
-        assert (REPO / "services" / name.replace("-", "_") / "__main__.py").is_file(), name
-        assert f"`{name}` is not in the compose stack" in text, name
+    for name, overrides in IN_OVERRIDES.items():
+        module = name.replace("-", "_")
+        assert (REPO / "services" / module / "__main__.py").is_file(), name
+        for override in overrides:
+            service = load_yaml((REPO / override).read_text())["services"][name]
+            assert service["command"] == ["python", "-m", f"services.{module}"], override
+            assert f"`{override}`" in text, f"deploy/README.md does not name {override}"
 
 
 def _causeway_services(compose: dict[str, Any]) -> dict[str, dict[str, Any]]:
@@ -332,3 +338,50 @@ def test_the_mesh_override_mounts_what_bus_secrets_writes_for_a_tls_router(tmp_p
     assert "0.0.0.0:7448:7448/tcp" in router["ports"] and "127.0.0.1:7447:7447/tcp" in router["ports"]
     assert (generated / "bus-ca.key").stat().st_mode & 0o777 == 0o600
     assert not any("bus-ca.key" in str(secret.get("file")) for secret in model["secrets"].values())
+
+
+@integration
+@pytest.mark.parametrize("override", sorted(EXTRACTOR_OVERRIDES))
+def test_an_extractor_override_runs_what_its_documented_secrets_allow(override: str, tmp_path: Path) -> None:
+    """The override's documented `make up` line: its variables make bus-secrets write every file the merged
+    stack mounts (the factor-extractor's role among them), the env-workers and the extractor parse their
+    settings into one consistent pair (frames instead of or beside transitions, the extractor's mode,
+    one method), and an env-worker so configured renders and packs frames."""
+    import dataclasses
+    import re
+
+    from services.env_worker.config import EnvWorkerConfig
+    from services.env_worker.core import EnvWorkerCore
+    from services.factor_extractor.config import FactorExtractorConfig
+
+    extractor, mode = EXTRACTOR_OVERRIDES[override]
+    line = next(line for line in (REPO / override).read_text().splitlines() if line.rstrip().endswith("make up"))
+    variables = dict(re.findall(r"\b((?:CAUSEWAY|COMPOSE)_\w+)=(\S+)", line))
+    assert variables.pop("COMPOSE_FILE") == f"compose.yaml:{override}"
+    assert variables["CAUSEWAY_EXTRACTOR"] == extractor
+    generated = tmp_path / "deploy" / "secrets"
+    clean = {k: v for k, v in os.environ.items() if not k.startswith(("CAUSEWAY_", "COMPOSE_", "GRAFANA_"))}
+    subprocess.run(["make", "-s", "-C", str(REPO), f"BUS_SECRETS={generated / 'router.json5'}",
+                    str(generated / "router.json5")], check=True, capture_output=True, timeout=120,
+                   env={**clean, **variables})
+    result = subprocess.run([require_tool("docker-compose"), "-f", "compose.yaml", "-f", override, "config"],
+                            cwd=REPO, capture_output=True, text=True, timeout=60, env={**clean, **variables})
+    assert result.returncode == 0, result.stderr
+    model = load_yaml(result.stdout)
+    for name, secret in model["secrets"].items():
+        if name.startswith("bus-"):
+            assert (generated / Path(secret["file"]).name).is_file(), name
+    extractor_service = model["services"]["factor-extractor"]
+    assert extractor_service["secrets"] == [{"source": "bus-factor-extractor", "target": "bus-credentials"}]
+    assert read_credentials(generated / "factor-extractor.credentials").user == "factor-extractor"
+    settings = {name: {k: str(v) for k, v in model["services"][name]["environment"].items()}
+                for name in ("env-worker", "factor-extractor")}
+    worker = parse_config(EnvWorkerConfig, [], settings["env-worker"])
+    labeller = parse_config(FactorExtractorConfig, [], settings["factor-extractor"])
+    assert labeller.mode == mode and labeller.method == worker.method == variables.get("CAUSEWAY_METHOD", "cdl")
+    assert (worker.publish_frames, worker.frames_beside) == (extractor == "frames", extractor == "latent")
+    assert labeller.bus_credentials == BUS_CREDENTIALS and labeller.zenoh_connect == ROUTER_CONNECT
+    core = EnvWorkerCore(dataclasses.replace(worker, run_dir=str(tmp_path / "run"), worker_index=0,
+                                             batch_steps=8, max_steps_per_second=0))
+    batch = core.collect()
+    assert len(core.frames_of(batch)) == len(batch) == 8

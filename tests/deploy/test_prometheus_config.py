@@ -17,7 +17,8 @@ from tests.deploy import REPO, load_yaml_file, require_tool
 
 integration = pytest.mark.integration
 DASHBOARD = REPO / "deploy" / "grafana" / "dashboards" / "causeway.json"
-SCRAPED_JOBS = {"env-worker", "dynamics-learner", "graph-evaluator", "dashboard", "policy-learner", "intrinsic-reward"}
+SCRAPED_JOBS = {"env-worker", "dynamics-learner", "graph-evaluator", "dashboard", "policy-learner", "intrinsic-reward",
+                "factor-extractor"}
 
 # Metric names as Prometheus stores them (after prometheus_client's suffixing), per service.
 COMMON_METRICS = {

@@ -153,3 +153,25 @@ def test_it_refuses_a_router_that_could_not_start_or_would_link_in_clear(tmp_pat
     with pytest.raises(SystemExit) as refused:
         cli_main(["bus-secrets", "--run", "mesh", "--out", str(tmp_path / "out"), *args])
     assert refused.value.code == 2 and says in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extractor, worker_publishes, extractor_publishes", [
+    ("frames", "causeway/compose/frames/*", "causeway/compose/transitions/*"),
+    ("latent", "causeway/compose/frames/*", "causeway/compose/latent/*"),
+])
+def test_an_extractor_adds_its_role_and_changes_the_workers(tmp_path: Path, extractor: str, worker_publishes: str,
+                                                           extractor_publishes: str) -> None:
+    """``--extractor frames|latent``: the factor-extractor's credentials and rules, as a local run with
+    ``--worker-publish-frames true`` or ``--label-latent-actions true`` draws them; none without it."""
+    plain = generate(tmp_path / "plain")
+    assert not (plain / "factor-extractor.credentials").exists()
+    out = tmp_path / extractor
+    assert cli_main(["bus-secrets", "--run", "compose", "--out", str(out), "--extractor", extractor,
+                     "--method", "flam" if extractor == "latent" else "cdl"]) == 0
+    assert read_credentials(role_file(out, "factor-extractor")).user == "factor-extractor"
+    rules = {r["id"]: r["key_exprs"] for r in json.loads((out / "secrets" / "access-control.json").read_text())["rules"]}
+    assert worker_publishes in rules["env-worker-ingress-put"]
+    assert extractor_publishes in rules["factor-extractor-ingress-put"]
+    assert ("causeway/compose/transitions/*" in rules["env-worker-ingress-put"]) == (extractor == "latent")
+    with pytest.raises(SystemExit):
+        cli_main(["bus-secrets", "--run", "compose", "--out", str(tmp_path / "bad"), "--extractor", "pixels"])
