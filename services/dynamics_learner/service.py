@@ -89,10 +89,7 @@ def run(cfg: DynamicsLearnerConfig, transport: Transport | None = None) -> None:
             if core.ready and now - last_publish >= cfg.publish_every_s:
                 _publish(shell, core, latest, metrics)
                 last_publish = now
-            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
-                core.checkpoint(ckpt)
-                metrics.checkpoints.inc()
-                shell.checkpoint_requested, last_ckpt = False, now
+            last_ckpt = shell.checkpoint_if_due(core, ckpt, last_ckpt, metrics.checkpoints)
             metrics.replay.set(core.replay.size)
             metrics.env_steps.set(core.env_steps)
             metrics.show_gaps(core.gaps.stats())

@@ -15,9 +15,6 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from pathlib import Path
-
-from prometheus_client import Counter
 
 from proto import topics
 from proto.messages import FrameBatch, Weights
@@ -85,25 +82,13 @@ def run(cfg: FactorExtractorConfig, transport: Transport | None = None) -> None:
                     log.warning(warning)
             metrics.ready.set(float(core.ready))
             _set_identity(metrics, core.matching())
-            last_ckpt = _checkpoint_when_due(shell, core, ckpt, last_ckpt, metrics.checkpoints)
+            last_ckpt = shell.checkpoint_if_due(core, ckpt, last_ckpt, metrics.checkpoints)
             shell.beat(core.progress())
     finally:
         core.checkpoint(ckpt)
         shell.beat(core.progress(), force=True)
         latest_spec.close()
         shell.close()
-
-
-def _checkpoint_when_due(shell: ServiceShell, core: FactorExtractorCore | LatentActionLabeller, path: Path,
-                         last: float, written: Counter) -> float:
-    """Checkpoint ``core`` when asked to or ``checkpoint_every_s`` after the last one; the time of the last."""
-    now = time.monotonic()
-    if not (shell.checkpoint_requested or now - last >= shell.cfg.checkpoint_every_s):
-        return last
-    core.checkpoint(path)
-    written.inc()
-    shell.checkpoint_requested = False
-    return now
 
 
 def _set_identity(metrics: _Metrics, matching: dict[str, float]) -> None:
@@ -177,7 +162,7 @@ def run_labeller(cfg: FactorExtractorConfig, transport: Transport | None = None)
             item = frames.get(timeout=0.05) if not shell.paused else None
             if item is not None:
                 _label(shell, core, item[1], metrics)
-            last_ckpt = _checkpoint_when_due(shell, core, ckpt, last_ckpt, metrics.checkpoints)
+            last_ckpt = shell.checkpoint_if_due(core, ckpt, last_ckpt, metrics.checkpoints)
             shell.beat(core.progress())
     finally:
         core.checkpoint(ckpt)

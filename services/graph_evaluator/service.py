@@ -120,9 +120,7 @@ def run(cfg: GraphEvaluatorConfig, transport: Transport | None = None) -> None:
                 last_local = now
             if core.local is not None:
                 metrics.local_heldout.set(core.local.ring.size)
-            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
-                core.checkpoint(ckpt)
-                shell.checkpoint_requested, last_ckpt = False, now
+            last_ckpt = shell.checkpoint_if_due(core, ckpt, last_ckpt)
             shell.beat({"heldout": core.heldout.size, "evaluated_version": core.evaluated_version,
                         "reports": len(core.history),
                         **(core.history[-1] if core.history else {}),

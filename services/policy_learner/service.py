@@ -93,10 +93,7 @@ def _serve(shell: ServiceShell, cfg: PolicyLearnerConfig, model: str, make_core:
         while not shell.stopping.is_set():
             shell.poll_control()
             done = step(core, lambda: _publish(shell, core, latest, metrics))
-            now = time.monotonic()
-            if shell.checkpoint_requested or now - last_ckpt >= cfg.checkpoint_every_s:
-                core.checkpoint(ckpt)
-                shell.checkpoint_requested, last_ckpt = False, now
+            last_ckpt = shell.checkpoint_if_due(core, ckpt, last_ckpt)
             shell.beat(core.progress())
             if done:
                 break

@@ -158,6 +158,19 @@ class ServiceShell:
             sys.exit(CONFIG_ERROR_EXIT)
         return path
 
+    def checkpoint_if_due(self, core: Any, path: Path, last: float, written: Any = None) -> float:
+        """Checkpoint ``core`` to ``path`` when a ``checkpoint`` command asked for it or ``checkpoint_every_s``
+        has passed since ``last`` (a ``time.monotonic()``); counts it on ``written`` (a Counter) if given.
+        Returns the time of the last checkpoint, to pass back next time."""
+        now = time.monotonic()
+        if not (self.checkpoint_requested or now - last >= self.cfg.checkpoint_every_s):
+            return last
+        core.checkpoint(path)
+        if written is not None:
+            written.inc()
+        self.checkpoint_requested = False
+        return now
+
     def guarded(self, apply: Callable[[Any], Any], message: Any) -> Any:
         """``apply(message)``; a ProtocolError (the message does not fit this run) is counted and dropped."""
         try:
