@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from proto import topics
-from proto.codec import ProtocolError, decode, encode
+from proto.codec import encode
 from proto.messages import Weights
 from services.bus.base import Transport
 from services.env_worker.config import EnvWorkerConfig
@@ -125,13 +125,7 @@ class _PolicyFollower:
             self._load(max(candidates, key=lambda w: w.version))
 
     def _query(self) -> list[Weights]:
-        found = []
-        for _, payload in self.shell.transport.query(self.key, timeout=1.0):
-            try:
-                found.append(decode(payload, Weights))
-            except ProtocolError as exc:
-                self.shell.metrics.reject(exc.reason)
-        return found
+        return self.shell.query(self.key, Weights)
 
     def _load(self, weights: Weights) -> None:
         before = self.core.policy.version

@@ -6,7 +6,7 @@ import sys
 import time
 
 from proto import topics
-from proto.codec import ProtocolError, decode, encode
+from proto.codec import encode
 from causal.graph_metrics import REPORTED_SCORES
 from proto.messages import GraphReport, LocalGraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
@@ -146,11 +146,8 @@ def _publish_induced(shell: ServiceShell, core: GraphEvaluatorCore, batch: Trans
 
 def _catch_up(shell: ServiceShell, core: GraphEvaluatorCore, cfg: GraphEvaluatorConfig) -> None:
     """A late (or restarted) evaluator asks for the current weights instead of waiting for the next ones."""
-    for key, payload in shell.transport.query(topics.weights(cfg.run_id, cfg.method), timeout=1.0):
-        try:
-            _load(core, decode(payload, Weights), shell)
-        except ProtocolError as exc:
-            shell.metrics.reject(exc.reason)
+    for weights in shell.query(topics.weights(cfg.run_id, cfg.method), Weights):
+        _load(core, weights, shell)
 
 
 def _load(core: GraphEvaluatorCore, w: Weights, shell: ServiceShell) -> None:

@@ -6,7 +6,6 @@ import sys
 from pathlib import Path
 
 from proto import topics
-from proto.codec import ProtocolError, decode
 from proto.messages import GraphReport, TransitionBatch, Weights
 from services.bus.base import Transport
 from services.intrinsic_reward.config import IntrinsicRewardConfig
@@ -81,15 +80,8 @@ def _load(shell: ServiceShell, core: IntrinsicRewardCore, weights: list[Weights]
 
 def _catch_up(shell: ServiceShell, core: IntrinsicRewardCore, cfg: IntrinsicRewardConfig, metrics: _Metrics) -> None:
     """A late (or restarted) scorer asks for the current weights and graph instead of waiting."""
-    found: dict[type, list] = {Weights: [], GraphReport: []}
-    for key, cls in ((topics.weights(cfg.run_id, cfg.method), Weights),
-                     (topics.graph(cfg.run_id, cfg.method), GraphReport)):
-        for _, payload in shell.transport.query(key, timeout=1.0):
-            try:
-                found[cls].append(decode(payload, cls))
-            except ProtocolError as exc:
-                shell.metrics.reject(exc.reason)
-    _load(shell, core, found[Weights], found[GraphReport], metrics)
+    _load(shell, core, shell.query(topics.weights(cfg.run_id, cfg.method), Weights),
+          shell.query(topics.graph(cfg.run_id, cfg.method), GraphReport), metrics)
 
 
 def _config_path(cfg: IntrinsicRewardConfig) -> Path:
