@@ -70,9 +70,7 @@ class FLAMRunConfig:
     mask_prior: str = doc("annealed", "annealed: Dyn-O's prior from the renderer's segments, dropped with "
                                       "probability log(1+u)/log(1+U) over lam_updates; none: no masks",
                           choices=("annealed", "none"))
-    ae_updates: int = doc(1500, "phase 1: FSQ autoencoder updates (eq. 8.1; then frozen). 1,500 since "
-                                "2026-12-07 (300 before: the runs of docs/results.md before then pass "
-                                "--flam-ae-updates 300): the benchmark's ceilings rose 10-17 dB with it")
+    ae_updates: int = doc(300, "phase 1: FSQ autoencoder updates (eq. 8.1; then frozen)")
     lam_updates: int = doc(1200, "U of the mask prior's schedule (latent-action updates until masks are never given)")
     ae_lr: float = doc(2e-3, "Adam learning rate of the autoencoder")
     lr: float = doc(2e-3, "Adam learning rate of the latent action model")
