@@ -69,6 +69,7 @@ class Args:
     coupling: str
     static_background: bool
     slot_reconstruction: float
+    mask_binding: float
     slot_stage_updates: int
     action_levels: tuple[int, ...]
     out: str
@@ -109,6 +110,9 @@ def parse_args(argv: list[str] | None = None) -> Args:
                    help="FLAM: slot 0 (the background's) gets no latent action (FLAMConfig.static_background)")
     p.add_argument("--slot-reconstruction", type=float, default=0.0,
                    help="FLAM: weight of an added reconstruction of e_t from its slots (0: eq. 8.6 alone)")
+    p.add_argument("--mask-binding", type=float, default=0.0,
+                   help="FLAM with a mask prior: weight of the term that teaches the slot attention without the "
+                        "masks to bind as the masks do (FLAMConfig.mask_binding; 0: the prior only restricts)")
     p.add_argument("--slot-stage-updates", type=int, default=600,
                    help="two-stage: updates of its first stage (slots by reconstruction, with --mask-prior)")
     p.add_argument("--action-levels", type=int, nargs="+", default=[],
@@ -124,6 +128,9 @@ def parse_args(argv: list[str] | None = None) -> Args:
         args["action_dim"] = len(args["action_levels"])
     if args["num_slots"] == 1 or args["num_slots"] < 0:
         p.error(f"--num-slots must be 0 (agents + 1) or >= 2 (the background's slot and at least one more), got {args['num_slots']}")
+    if args["mask_binding"] < 0 or (args["mask_binding"] > 0 and args["mask_prior"] == "none"):
+        p.error(f"--mask-binding must be >= 0 and needs a --mask-prior, got {args['mask_binding']} with "
+                f"--mask-prior {args['mask_prior']}")
     if args["variant"] == "correlated" and args["mask_prior"] == "annealed":
         p.error("--mask-prior annealed points slots at agents in index order, which on the correlated variant is "
                 "the grouping under test: use --mask-prior foreground or none")
@@ -290,6 +297,7 @@ def main(args: Args) -> dict[str, dict[str, float]]:
     config = FLAMConfig(num_slots=num_slots, slot_dim=args.slot_dim, action_dim=args.action_dim,
                         beta_kl=args.beta_kl, lr=args.lr, lr_final=args.lr_final,
                         lr_decay_updates=args.updates if args.lr_decay == "cosine" else 0, slot_reconstruction=args.slot_reconstruction, aggregator=args.aggregator,
+                        mask_binding=args.mask_binding,
                         temporal_attention=not args.no_temporal_attention, coupling=args.coupling,
                         static_background=args.static_background, action_levels=args.action_levels)
     autoencoder = FSQAutoencoder(config.levels)

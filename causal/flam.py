@@ -62,6 +62,11 @@ class FLAMConfig:
                                             "d_a = their count): alpha^i is the IDM's mean quantised, with no "
                                             "noise and no KL term, a hard bottleneck of prod(levels) codes per "
                                             "slot (not in the chapter, whose alpha is Gaussian); (): Gaussian")
+    mask_binding: float = doc(0.0, "weight of the mask prior's binding term: the cross-entropy of the slot "
+                                   "attention computed without the mask against the slots the mask allows, on "
+                                   "the clips whose masks are not dropped (0: the prior only restricts the "
+                                   "attention, Dyn-O's; > 0 also teaches the slots to bind so without it; not "
+                                   "in the chapter)")
     lr: float = doc(1e-3, "Adam learning rate")
     lr_decay_updates: int = doc(0, "cosine decay of the learning rate from lr to lr_final over this many "
                                    "updates, constant after (0: constant lr; not in the chapter)")
@@ -80,8 +85,10 @@ class FLAMConfig:
                              f"but action_dim is {self.action_dim}")
         if self.lr_decay_updates < 0 or not self.lr_final > 0:
             raise ValueError("lr_decay_updates must be >= 0 and lr_final > 0")
-        if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0) or self.slot_dim % 4:
-            raise ValueError("lr must be > 0, beta_kl and slot_reconstruction >= 0 and slot_dim a multiple of 4")
+        if not (self.lr > 0 and self.beta_kl >= 0 and self.slot_reconstruction >= 0 and self.mask_binding >= 0) \
+                or self.slot_dim % 4:
+            raise ValueError("lr must be > 0, beta_kl, slot_reconstruction and mask_binding >= 0 and slot_dim "
+                             "a multiple of 4")
 
 
 class LAMOutput(NamedTuple):
@@ -94,6 +101,8 @@ class LAMOutput(NamedTuple):
     """FLAM's slot attention ``[B, T, K, n]`` (None for the monolithic model)."""
     reconstructed: torch.Tensor | None = None
     """FLAM's slot-decoder reconstruction of e_{1:T} ``[B, T, n, d_e]`` when ``slot_reconstruction > 0``."""
+    binding: torch.Tensor | None = None
+    """FLAM's mask binding term (a scalar, :meth:`causal.flam_nets.Factorizer.bind`) when masks were given."""
 
 
 class LatentActionModel(Protocol):
@@ -124,7 +133,7 @@ class FLAM(nn.Module):
         self.action_fsq = FSQ(config.action_levels) if config.action_levels else None
 
     def forward(self, features: torch.Tensor, sample: bool = True, allowed: torch.Tensor | None = None) -> LAMOutput:
-        slots, attention = self.factorizer(features, allowed)
+        slots, attention, binding = self.factorizer.bind(features, allowed)
         reconstructed = None
         if self.slot_decoder is not None:
             reconstructed = self.slot_decoder(slots.flatten(0, 1))[0].view_as(features)
@@ -138,7 +147,8 @@ class FLAM(nn.Module):
         predicted = self.aggregator(features[:, :-1].flatten(0, 1), predicted_slots)
         shape = (b, t - 1)
         return LAMOutput(predicted.view(shape + predicted.shape[1:]), mu.view(shape + mu.shape[1:]),
-                         log_sigma.view(shape + mu.shape[1:]), attention, reconstructed)
+                         log_sigma.view(shape + mu.shape[1:]), attention, reconstructed,
+                         None if allowed is None else binding)
 
     def infer(self, features: torch.Tensor) -> torch.Tensor:
         """Posterior means of the latent actions ``[B, T-1, K, d_a]`` of a clip's features."""
@@ -221,10 +231,12 @@ class MonolithicLAM(nn.Module):
 
 
 def lam_loss(features: torch.Tensor, out: LAMOutput, beta_kl: float,
-             slot_reconstruction: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+             slot_reconstruction: float = 0.0, mask_binding: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 8.6 per transition, averaged over transitions: the squared error of the next features
     (summed over tokens and channels) plus beta_KL times the KL summed over slots; plus, when the
-    model reconstructs, ``slot_reconstruction`` times the squared error of e_t from its slots."""
+    model reconstructs, ``slot_reconstruction`` times the squared error of e_t from its slots; plus,
+    when masks were given, ``mask_binding`` times the binding term (reported as ``mask_binding_ce``
+    whatever its weight)."""
     prediction = (out.predicted - features[:, 1:]).pow(2).flatten(2).sum(-1).mean()
     kl = gaussian_kl(out.mu, out.log_sigma).sum(-1).mean()
     terms = {"prediction_sse": float(prediction.detach()), "kl": float(kl.detach())}
@@ -233,6 +245,10 @@ def lam_loss(features: torch.Tensor, out: LAMOutput, beta_kl: float,
         reconstruction = (out.reconstructed - features).pow(2).flatten(2).sum(-1).mean()
         loss = loss + slot_reconstruction * reconstruction
         terms["slot_reconstruction_sse"] = float(reconstruction.detach())
+    if out.binding is not None:
+        if mask_binding > 0:
+            loss = loss + mask_binding * out.binding
+        terms["mask_binding_ce"] = float(out.binding.detach())
     return loss, terms
 
 
@@ -281,7 +297,7 @@ class LAMTrainer:
             group["lr"] = cosine_lr(self.config.lr, self.config.lr_final, self.updates, self.config.lr_decay_updates)
         out = self.model(features, allowed=self.masks_for(labels))
         beta_kl = 0.0 if self.config.action_levels else self.config.beta_kl
-        loss, terms = lam_loss(features, out, beta_kl, self.config.slot_reconstruction)
+        loss, terms = lam_loss(features, out, beta_kl, self.config.slot_reconstruction, self.config.mask_binding)
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)

@@ -102,3 +102,10 @@ def test_the_correlated_variant_refuses_the_segment_prior(capsys: pytest.Capture
         parse_args(["--variant", "correlated", "--mask-prior", "annealed"])
     assert "the grouping under test" in capsys.readouterr().err
     assert parse_args(["--variant", "correlated", "--mask-prior", "foreground"]).mask_prior == "foreground"
+
+
+def test_the_binding_term_needs_a_mask_prior(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse_args(["--mask-binding", "1"])
+    assert "needs a --mask-prior" in capsys.readouterr().err
+    assert parse_args(["--mask-binding", "1", "--mask-prior", "annealed"]).mask_binding == 1.0

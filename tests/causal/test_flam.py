@@ -187,6 +187,49 @@ def test_foreground_prior_keeps_the_background_slot_apart_and_lets_the_others_sh
     assert trainer.masks_for(labels).all()  # annealed away like the segment prior
 
 
+def test_binding_term_is_the_cross_entropy_of_the_unmasked_attention_against_the_mask() -> None:
+    model = _flam()
+    features = _features(b=2, t=3)
+    labels = torch.randint(CONFIG.num_slots, (2, 3, TOKENS), generator=torch.Generator().manual_seed(2))
+    allowed = torch.nn.functional.one_hot(labels, CONFIG.num_slots).permute(0, 1, 3, 2).bool()
+    # by hand, one iteration from the initial slots: -log of the unmasked softmax at the label's slot
+    factorizer = torch.nn.Module.__new__(type(model.factorizer))
+    factorizer.__dict__.update(model.factorizer.__dict__)
+    factorizer.iterations = 1
+    tokens = model.factorizer.norm_tokens(model.factorizer.embed(features)).flatten(0, 1)
+    queries = model.factorizer.to_q(model.factorizer.norm_slots(model.factorizer.initial))
+    logits = torch.einsum("kd,mnd->mkn", queries, model.factorizer.to_k(tokens)) * model.factorizer.scale
+    expected = -logits.log_softmax(dim=1).gather(1, labels.flatten(0, 1)[:, None]).mean()
+    torch.testing.assert_close(factorizer.bind(features, allowed)[2], expected)
+    # nothing to learn where no mask is given or every slot is allowed (a dropped mask)
+    with torch.no_grad():
+        assert float(model.factorizer.bind(features)[2]) == 0.0
+        assert float(model.factorizer.bind(features, torch.ones_like(allowed))[2]) == 0.0
+        assert model(features).binding is None
+
+
+def test_binding_weight_teaches_the_slots_to_bind_without_the_mask() -> None:
+    features = _features(b=4, t=3)
+    labels = (features[..., 0] > -0.25).long() + (features[..., 0] > 0.25).long()  # a token's segment: its look
+    allowed = torch.nn.functional.one_hot(labels, CONFIG.num_slots).permute(0, 1, 3, 2).bool()
+    with torch.no_grad():
+        start = float(_flam().factorizer.bind(features, allowed)[2])
+    ends = []
+    for weight in (0.0, 1.0):
+        torch.manual_seed(0)
+        model = FLAM(FLAMConfig(**{**CONFIG.__dict__, "mask_binding": weight, "lr": 3e-3}), TOKENS)
+        trainer = LAMTrainer(model, seed=0, mask_prior="annealed", total_updates=10**9)  # masks kept
+        for _ in range(60):
+            terms = trainer.update(features, labels)
+        assert "mask_binding_ce" in terms
+        with torch.no_grad():
+            ends.append(float(model.factorizer.bind(features, allowed)[2]))
+    # the restricted attention alone gives the unmasked attention no pull towards the labels
+    assert ends[1] < 0.5 * start and ends[1] < 0.5 * ends[0]
+    with pytest.raises(ValueError, match="mask_binding"):
+        FLAMConfig(mask_binding=-1.0)
+
+
 def test_slot_reconstruction_term_is_added_when_weighted() -> None:
     torch.manual_seed(0)
     model = FLAM(FLAMConfig(**{**CONFIG.__dict__, "slot_reconstruction": 0.5}), TOKENS).eval()
