@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from causal.slots import FrameAutoencoder
+from causal.slots import FrameAutoencoder, balanced_binding, restrict_attention
 
 
 class FSQ(nn.Module):
@@ -119,17 +119,11 @@ class Factorizer(nn.Module):
     def _attend(self, slots: torch.Tensor, keys: torch.Tensor, values: torch.Tensor,
                 allowed: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One slot-attention iteration on ``M`` frames: slots ``[M, K, D]``, keys and values
-        ``[M, n, D]``, ``allowed`` ``[M, K, n]`` or None -> (slots, attention ``[M, K, n]``, binding
-        ``[M, n]``): the binding is what the mask changed, ``-log`` of the share of each token that
-        the attention *without* the mask gives to its allowed slots (0 where the mask allows every
-        slot or no slot, and everywhere when ``allowed`` is None)."""
+        ``[M, n, D]``, ``allowed`` ``[M, K, n]`` or None -> (slots, attention ``[M, K, n]``, each
+        token's binding cross-entropy ``[M, n]``: :func:`causal.slots.restrict_attention`)."""
         m, k, d = slots.shape
         logits = torch.einsum("mkd,mnd->mkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
-        binding = logits.new_zeros(m, logits.shape[2])
-        if allowed is not None:
-            masked = logits.masked_fill(~allowed, -1e9)
-            binding = torch.where(allowed.any(dim=1), logits.logsumexp(dim=1) - masked.logsumexp(dim=1), binding)
-            logits = masked
+        logits, binding = restrict_attention(logits, allowed)
         attention = logits.softmax(dim=1)
         updates = (attention / (attention.sum(dim=2, keepdim=True) + 1e-8)) @ values
         slots = self.gru(updates.reshape(-1, d), slots.reshape(-1, d)).view(m, k, d)
@@ -145,10 +139,10 @@ class Factorizer(nn.Module):
     def bind(self, features: torch.Tensor, allowed: torch.Tensor | None = None
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`forward`'s slots and attention, and the mask's binding term: the cross-entropy of the
-        attention computed without the mask against the slots the mask allows, averaged over every
-        token of every frame and every iteration (frames whose mask is dropped add 0). It is 0 when
-        the slots would bind as the mask binds them without it; :class:`causal.flam.LAMTrainer`
-        weights it by ``FLAMConfig.mask_binding``."""
+        attention computed without the mask against the slots the mask allows, averaged over the
+        iterations, then per segment and over the segments of the frames whose mask is not dropped
+        (:func:`causal.slots.balanced_binding`). It is 0 when the slots would bind as the mask binds
+        them without it; :class:`causal.flam.LAMTrainer` weights it by ``FLAMConfig.mask_binding``."""
         b, t, n, _ = features.shape
         tokens = self.norm_tokens(self.embed(features)).flatten(0, 1)
         keys, values = self.to_k(tokens), self.to_v(tokens)
@@ -158,14 +152,14 @@ class Factorizer(nn.Module):
         slots = self.initial.expand(b * t, k, d)
         causal = torch.ones(t, t, dtype=torch.bool).triu(1)
         frame_allowed = None if allowed is None else allowed.flatten(0, 1)
-        binding = keys.new_zeros(())
+        binding = keys.new_zeros(b * t, n)
         for _ in range(self.iterations):
-            slots, attention, frame_binding = self._attend(slots, keys, values, frame_allowed)
-            binding = binding + frame_binding.mean() / self.iterations
+            slots, attention, token_binding = self._attend(slots, keys, values, frame_allowed)
+            binding = binding + token_binding / self.iterations
             per_slot = slots.view(b, t, k, d).transpose(1, 2).reshape(b * k, t, d)
             per_slot = self.temporal(per_slot, per_slot, causal)
             slots = per_slot.view(b, k, t, d).transpose(1, 2).reshape(b * t, k, d)
-        return slots.view(b, t, k, d), attention.view(b, t, k, n), binding
+        return slots.view(b, t, k, d), attention.view(b, t, k, n), balanced_binding(binding, frame_allowed)
 
     def _sequential(self, keys: torch.Tensor, values: torch.Tensor, allowed: torch.Tensor | None
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -173,16 +167,19 @@ class Factorizer(nn.Module):
         b, t = keys.shape[:2]
         k, d = self.initial.shape
         slots = self.initial.expand(b, k, d)
-        all_slots, all_attention = [], []
-        binding = keys.new_zeros(())
+        all_slots, all_attention, all_binding = [], [], []
         for step in range(t):
+            binding = keys.new_zeros(b, keys.shape[2])
             for _ in range(self.iterations):
-                slots, attention, frame_binding = self._attend(slots, keys[:, step], values[:, step],
+                slots, attention, token_binding = self._attend(slots, keys[:, step], values[:, step],
                                                                None if allowed is None else allowed[:, step])
-                binding = binding + frame_binding.mean() / (self.iterations * t)
+                binding = binding + token_binding / self.iterations
             all_slots.append(slots)
             all_attention.append(attention)
-        return torch.stack(all_slots, dim=1), torch.stack(all_attention, dim=1), binding
+            all_binding.append(binding)
+        frame_allowed = None if allowed is None else allowed.flatten(0, 1)
+        return (torch.stack(all_slots, dim=1), torch.stack(all_attention, dim=1),
+                balanced_binding(torch.stack(all_binding, dim=1).flatten(0, 1), frame_allowed))
 
 
 def per_slot_cross(block: AttentionBlock, query: torch.Tensor, keys: tuple[torch.Tensor, ...],

@@ -84,6 +84,38 @@ def frames_to_tensor(frames: torch.Tensor) -> torch.Tensor:
     return frames.permute(0, 3, 1, 2).float() / 255.0
 
 
+def restrict_attention(logits: torch.Tensor, allowed: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mask prior on slot-attention logits ``[M, K, n]``: the logits with the slots a token may not
+    take at -1e9, and each token's binding cross-entropy ``[M, n]``, ``-log`` of the share the attention
+    *without* the mask gives to the slots the mask allows (0 where the mask allows every slot or none,
+    so on a dropped mask, and everywhere when ``allowed`` is None).
+
+    Under a one-slot-per-token mask the restricted softmax is exactly 1 whatever the logits, so the
+    attention's queries and keys learn nothing from the masked frames about which slot takes which
+    object; the cross-entropy is what would teach them (:func:`balanced_binding`)."""
+    if allowed is None:
+        return logits, logits.new_zeros(logits.shape[0], logits.shape[2])
+    masked = logits.masked_fill(~allowed, -1e9)
+    restricted = allowed.any(dim=1) & ~allowed.all(dim=1)
+    cross_entropy = torch.where(restricted, logits.logsumexp(dim=1) - masked.logsumexp(dim=1), 0.0)
+    return masked, cross_entropy
+
+
+def balanced_binding(cross_entropy: torch.Tensor, allowed: torch.Tensor | None) -> torch.Tensor:
+    """A scalar from :func:`restrict_attention`'s cross-entropy ``[M, n]``: averaged over the tokens of each
+    segment (the tokens a slot is allowed, where the mask restricts), then over the segments of every
+    frame whose mask restricts any token, so a small object counts as much as the background and a frame
+    whose mask is dropped counts not at all (0 when no frame has a mask)."""
+    if allowed is None:
+        return cross_entropy.new_zeros(())
+    restricted = allowed.any(dim=1) & ~allowed.all(dim=1)
+    owners = (allowed & restricted[:, None, :]).to(cross_entropy.dtype)  # [M, K, n]
+    count = owners.sum(dim=-1)
+    per_segment = (owners * cross_entropy[:, None, :]).sum(dim=-1) / count.clamp_min(1.0)
+    present = count > 0
+    return per_segment[present].sum() / present.sum().clamp_min(1)
+
+
 def token_masks(labels: torch.Tensor, num_slots: int, stride: int = FEATURE_STRIDE, rule: str = "touch") -> torch.Tensor:
     """bool ``[B, K, n]``: which slots each feature token (a ``stride`` x ``stride`` pixel block) of the
     label maps ``[B, H, W]`` (0 the background, ``k`` object ``k - 1``) may go to.

@@ -199,12 +199,21 @@ def test_binding_term_is_the_cross_entropy_of_the_unmasked_attention_against_the
     tokens = model.factorizer.norm_tokens(model.factorizer.embed(features)).flatten(0, 1)
     queries = model.factorizer.to_q(model.factorizer.norm_slots(model.factorizer.initial))
     logits = torch.einsum("kd,mnd->mkn", queries, model.factorizer.to_k(tokens)) * model.factorizer.scale
-    expected = -logits.log_softmax(dim=1).gather(1, labels.flatten(0, 1)[:, None]).mean()
+    cross_entropy = -logits.log_softmax(dim=1).gather(1, labels.flatten(0, 1)[:, None])[:, 0]  # [frames, n]
+    per_segment = [cross_entropy[f][labels.flatten(0, 1)[f] == k].mean()  # each segment counts alike
+                   for f in range(len(cross_entropy)) for k in range(CONFIG.num_slots)
+                   if (labels.flatten(0, 1)[f] == k).any()]
+    expected = torch.stack(per_segment).mean()
     torch.testing.assert_close(factorizer.bind(features, allowed)[2], expected)
     # nothing to learn where no mask is given or every slot is allowed (a dropped mask)
     with torch.no_grad():
         assert float(model.factorizer.bind(features)[2]) == 0.0
         assert float(model.factorizer.bind(features, torch.ones_like(allowed))[2]) == 0.0
+        # a dropped clip adds nothing and does not dilute the others
+        dropped = allowed.clone()
+        dropped[1] = True
+        kept = factorizer.bind(features[:1], allowed[:1])[2]
+        torch.testing.assert_close(factorizer.bind(features, dropped)[2], kept)
         assert model(features).binding is None
 
 
