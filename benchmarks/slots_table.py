@@ -120,12 +120,13 @@ def score(model: SlotModel, frames: torch.Tensor, labels: torch.Tensor, with_mas
 
 def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: dict[str, Any],
                   train: tuple[torch.Tensor, torch.Tensor], token_mask: str = "touch",
-                  mask_assignment: str = "index") -> tuple[SlotModel, dict[str, Any]]:
+                  mask_assignment: str = "index", mask_binding: float = 0.0) -> tuple[SlotModel, dict[str, Any]]:
     """Slot attention and decoder trained with mask prior ``variant`` (masks per token by ``token_mask``,
-    :func:`causal.slots.token_masks`); the model and its training record."""
+    :func:`causal.slots.token_masks`; ``mask_binding``: ``SlotConfig.mask_binding``); the model and its
+    training record."""
     torch.manual_seed(seed)
     config = SlotConfig(num_slots=budget.slots, mask_prior=variant, token_mask=token_mask,
-                        mask_assignment=mask_assignment)
+                        mask_assignment=mask_assignment, mask_binding=mask_binding)
     model = SlotModel(config, budget.frame_size)
     model.autoencoder.load_state_dict(autoencoder_state)
     model.autoencoder.requires_grad_(False)
@@ -142,7 +143,7 @@ def train_variant(variant: str, seed: int, budget: Budget, autoencoder_state: di
 
 def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] = lambda _: None,
              env: str = "chemical-pixels", token_mask: str = "touch", mask_assignment: str = "index",
-             variants: tuple[str, ...] = VARIANTS) -> dict[str, Any]:
+             variants: tuple[str, ...] = VARIANTS, mask_binding: float = 0.0) -> dict[str, Any]:
     """Every variant for one seed: FG-ARI without (and for the oracle with) masks on unseen frames of
     ``env``; ``save`` gets the seed's record after each variant."""
     torch.manual_seed(seed)
@@ -153,11 +154,11 @@ def run_seed(seed: int, budget: Budget, save: Callable[[dict[str, Any]], None] =
     started = time.perf_counter()
     ae_loss = fit_autoencoder(base.autoencoder, train[0], budget.ae_updates, seed=seed)
     out: dict[str, Any] = {"seed": seed, "env": env, "token_mask": token_mask, "mask_assignment": mask_assignment,
-                           "num_slots": budget.slots,
+                           "mask_binding": mask_binding, "num_slots": budget.slots,
                            "autoencoder": {"final_mse": ae_loss, "seconds": time.perf_counter() - started}}
     for variant in variants:
         model, record = train_variant(variant, seed, budget, base.autoencoder.state_dict(), train, token_mask,
-                                      mask_assignment)
+                                      mask_assignment, mask_binding)
         fg, identity = score(model, *test, with_masks=False)
         record["slots"], record["slot_identity"] = {"fg_ari": fg}, identity
         if variant == "always":
@@ -184,19 +185,34 @@ def table(results: list[dict[str, Any]]) -> str:
     return "\n".join(rows)
 
 
+def _weight(text: str) -> float:
+    """A loss weight from the command line: a float >= 0, refused before anything runs."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a weight is a number, got {text!r}") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"a weight must be >= 0, got {text!r}")
+    return value
+
+
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env", choices=ENVS, default="chemical-pixels", help="the rendered environment")
     p.add_argument("--token-mask", choices=TOKEN_MASKS, default="touch",
                    help="which slots a token may take under the masks (causal.slots.token_masks)")
     p.add_argument("--mask-assignment", choices=MASK_ASSIGNMENTS, default="index",
                    help="which slot gets which segment under the masks (SlotConfig.mask_assignment)")
+    p.add_argument("--mask-binding", type=_weight, default=0.0,
+                   help="weight of the masks' binding term (SlotConfig.mask_binding; 0: the masks only restrict "
+                        "the attention)")
     p.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="the mask priors to train")
 
 
 def main(argv: list[str] | None = None) -> None:
     table_main(argv, description=__doc__, budget_type=Budget, default_out=Path("benchmark-results/slots/table.json"),
                run_seed=lambda seed, budget, args, save: run_seed(seed, budget, save, args.env, args.token_mask,
-                                                                  args.mask_assignment, tuple(args.variants)),
+                                                                  args.mask_assignment, tuple(args.variants),
+                                                                  args.mask_binding),
                table=table,
                add_arguments=_add_arguments)
 

@@ -61,6 +61,11 @@ class SlotConfig:
                                         "Hungarian matching: the masks group tokens but fix no slot order; "
                                         "not in the chapter, whose SAM2 segments have no order)",
                                choices=MASK_ASSIGNMENTS)
+    mask_binding: float = doc(0.0, "weight of the mask prior's binding term: the cross-entropy of the slot "
+                                   "attention computed without the masks against the slots they allow, per "
+                                   "segment, on the frames whose masks are kept (0: the masks only restrict "
+                                   "the attention, the chapter's; > 0 also teaches the slots to bind so "
+                                   "without them; not in the chapter)")
 
     def __post_init__(self) -> None:
         if self.mask_assignment not in MASK_ASSIGNMENTS:
@@ -68,6 +73,8 @@ class SlotConfig:
         if min(self.num_slots, self.feature_dim, self.slot_dim, self.attention_dim, self.iterations,
                self.decoder_hidden, self.batch_size) < 1 or not self.lr > 0:
             raise ValueError("slot sizes, iterations, batch size and lr must be positive")
+        if self.mask_binding < 0:
+            raise ValueError(f"mask_binding must be >= 0, got {self.mask_binding}")
         if self.mask_prior not in MASK_PRIORS:
             raise ValueError(f"mask_prior must be one of {MASK_PRIORS}, got {self.mask_prior!r}")
         if self.token_mask not in TOKEN_MASKS:
@@ -170,19 +177,28 @@ class SlotAttention(nn.Module):
     def forward(self, tokens: torch.Tensor, allowed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Slots ``[B, K, d_xi]`` and the last attention ``[B, K, n]`` (normalised over slots);
         ``allowed`` (bool ``[B, K, n]``) is the mask prior: slot ``k`` sees only its tokens."""
+        slots, attention, _ = self.bind(tokens, allowed)
+        return slots, attention
+
+    def bind(self, tokens: torch.Tensor, allowed: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`forward`'s slots and attention, and the mask's binding term (a scalar): each token's
+        cross-entropy of the attention without the mask against the slots the mask allows, averaged over
+        the iterations, then by :func:`balanced_binding` (0 without a mask)."""
         tokens = self.norm_tokens(tokens)
         keys, values = self.to_k(tokens), self.to_v(tokens)
         slots = self.initial.expand(len(tokens), -1, -1)
+        binding = keys.new_zeros(keys.shape[:2])
         for _ in range(self.iterations):
             logits = torch.einsum("bkd,bnd->bkn", self.to_q(self.norm_slots(slots)), keys) * self.scale
-            if allowed is not None:
-                logits = logits.masked_fill(~allowed, -1e9)
+            logits, token_binding = restrict_attention(logits, allowed)
+            binding = binding + token_binding / self.iterations
             attention = logits.softmax(dim=1)
             weights = attention / (attention.sum(dim=2, keepdim=True) + 1e-8)
             updates = weights @ values
             slots = self.gru(updates.flatten(0, 1), slots.flatten(0, 1)).view_as(slots)
             slots = slots + self.mlp(slots)
-        return slots, attention
+        return slots, attention, balanced_binding(binding, allowed)
 
 
 class SlotDecoder(nn.Module):
@@ -209,6 +225,8 @@ class SlotOutput(NamedTuple):
     features_hat: torch.Tensor
     alpha: torch.Tensor
     reconstruction: torch.Tensor
+    binding: torch.Tensor | None = None
+    """The mask's binding term (:meth:`SlotAttention.bind`) when masks were given."""
 
 
 class SlotModel(nn.Module):
@@ -257,16 +275,23 @@ class SlotModel(nn.Module):
                 encoded: tuple[torch.Tensor, torch.Tensor] | None = None) -> SlotOutput:
         """eq. 7.1's pass; ``encoded`` = ``(features, tokens)`` of ``frames`` where already computed."""
         features, tokens = self._tokens(frames) if encoded is None else encoded
-        slots, attention = self.slot_attention(tokens, allowed)
+        slots, attention, binding = self.slot_attention.bind(tokens, allowed)
         features_hat, alpha = self.slot_decoder(slots)
         grid = features_hat.transpose(1, 2).reshape(len(frames), -1, self.grid, self.grid)
-        return SlotOutput(slots, attention, features, features_hat, alpha, self.autoencoder.decoder(grid))
+        return SlotOutput(slots, attention, features, features_hat, alpha, self.autoencoder.decoder(grid),
+                          None if allowed is None else binding)
 
     def loss(self, frames: torch.Tensor, out: SlotOutput) -> tuple[torch.Tensor, dict[str, float]]:
-        """eq. 7.1: feature reconstruction plus image reconstruction (mean squared errors)."""
+        """eq. 7.1: feature reconstruction plus image reconstruction (mean squared errors); plus, where
+        masks were given, ``config.mask_binding`` times the binding term (``mask_binding_ce``)."""
         feature = F.mse_loss(out.features_hat, out.features)
         image = F.mse_loss(out.reconstruction, frames_to_tensor(frames))
-        return feature + image, {"feature_mse": float(feature.detach()), "image_mse": float(image.detach())}
+        loss, terms = feature + image, {"feature_mse": float(feature.detach()), "image_mse": float(image.detach())}
+        if out.binding is not None:
+            if self.config.mask_binding > 0:
+                loss = loss + self.config.mask_binding * out.binding
+            terms["mask_binding_ce"] = float(out.binding.detach())
+        return loss, terms
 
     @torch.no_grad()
     def segment(self, frames: torch.Tensor, allowed: torch.Tensor | None = None) -> torch.Tensor:

@@ -48,3 +48,17 @@ def test_more_slots_than_segments_leaves_the_spare_slots_free(tmp_path: Path) ->
     with pytest.raises(ValueError, match="num-slots 2 < 3"):
         main(["--num-objects", "2", "--num-slots", "2", "--out", str(tmp_path / "bad.json")])
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_the_binding_weight_reaches_the_masked_variants_and_is_refused_below_zero(tmp_path: Path) -> None:
+    out = tmp_path / "table.json"
+    main(["--seeds", "0", "--num-objects", "2", "--frame-size", "16", "--train-frames", "16", "--eval-frames", "8",
+          "--ae-updates", "1", "--slot-updates", "2", "--mask-binding", "0.5", "--variants", "always", "none",
+          "--out", str(out)])
+    result = json.loads(out.read_text())["results"][0]
+    assert result["mask_binding"] == 0.5
+    assert "mask_binding_ce" in result["always"]["final_losses"]  # masks given: the term is computed
+    assert "mask_binding_ce" not in result["none"]["final_losses"]
+    with pytest.raises(SystemExit):
+        main(["--mask-binding", "-1", "--out", str(tmp_path / "bad.json")])
+    assert not (tmp_path / "bad.json").exists()

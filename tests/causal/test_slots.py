@@ -204,3 +204,31 @@ def test_a_matched_update_encodes_the_frames_once_with_the_same_result() -> None
         calls.append(len(encoder_calls))
     assert losses[0] == pytest.approx(losses[1], rel=1e-6)
     assert calls == [2, 1]
+
+
+def test_slot_attention_learns_to_bind_as_the_masks_do_only_with_the_binding_term() -> None:
+    """Under one-slot-per-token masks the restricted attention is 1 whatever the logits, so only the
+    binding term pulls the unmasked attention towards the masks' slots."""
+    generator = torch.Generator().manual_seed(0)
+    tokens = torch.randn(8, 12, 6, generator=generator)
+    labels = (tokens[..., 0] > 0).long() + (tokens[..., 1] > 0.5).long()  # a token's segment: its look
+    allowed = torch.nn.functional.one_hot(labels, 3).permute(0, 2, 1).bool()
+    ends = []
+    for weight in (0.0, 1.0):
+        torch.manual_seed(0)
+        attention = SlotAttention(6, SlotConfig(num_slots=3, slot_dim=8, attention_dim=8, iterations=2))
+        optimizer = torch.optim.Adam(attention.parameters(), lr=1e-2)
+        with torch.no_grad():
+            start = float(attention.bind(tokens, allowed)[2])
+        for _ in range(80):
+            slots, _, binding = attention.bind(tokens, allowed)
+            loss = slots.pow(2).mean() + weight * binding
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        with torch.no_grad():
+            ends.append(float(attention.bind(tokens, allowed)[2]))
+            assert float(attention.bind(tokens)[2]) == 0.0
+    assert ends[1] < 0.5 * start and ends[1] < 0.5 * ends[0]
+    with pytest.raises(ValueError, match="mask_binding"):
+        SlotConfig(mask_binding=-0.1)
