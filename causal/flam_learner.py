@@ -70,6 +70,9 @@ class FLAMRunConfig:
     mask_prior: str = doc("annealed", "annealed: Dyn-O's prior from the renderer's segments, dropped with "
                                       "probability log(1+u)/log(1+U) over lam_updates; none: no masks",
                           choices=("annealed", "none"))
+    mask_binding: float = doc(0.0, "weight of the mask prior's binding term (FLAMConfig.mask_binding): the "
+                                   "slot attention without the masks learns to bind as they do (0: they only "
+                                   "restrict it; not in the chapter)")
     ae_updates: int = doc(300, "phase 1: FSQ autoencoder updates (eq. 8.1; then frozen)")
     lam_updates: int = doc(1200, "U of the mask prior's schedule (latent-action updates until masks are never given)")
     ae_lr: float = doc(2e-3, "Adam learning rate of the autoencoder")
@@ -90,6 +93,10 @@ class FLAMRunConfig:
             raise ValueError("FLAM learning rates must be positive finite numbers")
         if not (math.isfinite(self.beta_kl) and self.beta_kl >= 0):
             raise ValueError(f"beta_kl must be a finite number >= 0, got {self.beta_kl}")
+        if not (math.isfinite(self.mask_binding) and self.mask_binding >= 0):
+            raise ValueError(f"mask_binding must be a finite number >= 0, got {self.mask_binding}")
+        if self.mask_binding > 0 and self.mask_prior == "none":
+            raise ValueError("mask_binding needs the annealed mask prior (mask_prior none gives no masks to bind to)")
         if self.aggregator not in ("broadcast", "cross-attention"):
             raise ValueError(f"aggregator must be 'broadcast' or 'cross-attention', got {self.aggregator!r}")
         if self.coupling not in ("per-slot", "global"):
@@ -101,7 +108,8 @@ class FLAMRunConfig:
         return FLAMConfig(num_slots=self.num_slots or num_agents + 1, slot_dim=self.slot_dim,
                           action_dim=self.action_dim, iterations=self.iterations, levels=FSQ_LEVELS,
                           beta_kl=self.beta_kl, aggregator=self.aggregator, lr=self.lr, batch_size=self.batch_size,
-                          temporal_attention=self.temporal_attention, coupling=self.coupling)
+                          temporal_attention=self.temporal_attention, coupling=self.coupling,
+                          mask_binding=self.mask_binding)
 
 
 def multigrid_geometry(layout: FactorLayout) -> tuple[int, int]:

@@ -65,6 +65,13 @@ def test_live_scores_come_every_live_every_latent_action_updates() -> None:
     assert live == [[], [], expected, [], expected, []]  # latent-action updates 1 and 3 of 4
 
 
+def test_the_binding_weight_reaches_the_latent_action_model_and_its_loss() -> None:
+    trainer = FLAMTrainer(_layout(), FLAMRunConfig(**{**TINY.__dict__, "mask_binding": 2.0}), seed=0)
+    assert trainer.model.lam.config.mask_binding == 2.0
+    stats = [trainer.update(*_batch(u)) for u in range(3)]  # the third is a latent-action update, masks kept
+    assert stats[2]["phase"] == 1.0 and math.isfinite(stats[2]["loss"]) and "mask_binding_ce" in stats[2]
+
+
 @pytest.mark.parametrize("ablation", [{}, {"temporal_attention": False, "coupling": "global"}])
 def test_weights_travel_as_a_msgpack_message_and_rebuild_the_same_model(ablation: dict) -> None:
     """Also for Table 8.5's ablations: the config carries them, so the receiver builds the same networks."""
@@ -120,7 +127,8 @@ def test_only_multigrid_layouts_and_sound_settings_are_taken() -> None:
     with pytest.raises(ValueError, match="MultiGrid-agents states only"):
         multigrid_geometry(chemical)
     for bad in ({"slot_dim": 6}, {"lr": 0.0}, {"beta_kl": -1.0}, {"beta_kl": math.nan}, {"ae_updates": -1},
-                {"aggregator": "sum"}, {"mask_prior": "always"}, {"horizon": 0}):
+                {"aggregator": "sum"}, {"mask_prior": "always"}, {"horizon": 0}, {"mask_binding": -1.0},
+                {"mask_binding": 1.0, "mask_prior": "none"}):
         with pytest.raises(ValueError):
             FLAMRunConfig(**bad)
     method = get_method("flam")
