@@ -286,6 +286,21 @@ def slot_sharing(slots: torch.Tensor) -> dict[str, float]:
             "every_agent_own_slot": float(all_distinct.float().mean())}
 
 
+def code_overlap(features: torch.Tensor, labels: torch.Tensor, segments: int) -> list[list[float]]:
+    """``[S][S]``: how alike the frozen autoencoder's codes of two segments are, the overlap
+    ``sum_c min(p_a(c), p_b(c))`` of their tokens' code histograms (1: the same codes in the same
+    shares; 0: no code in common). Features ``[..., n, d_e]`` (FSQ codes), token labels ``[..., n]``.
+    Two agents whose tokens share codes differ only in what the encoder put in the tokens around them,
+    and slot attention, which reads a token's code, cannot tell them apart from it."""
+    codes, inverse = torch.unique(features.flatten(0, -2), dim=0, return_inverse=True)
+    flat = labels.flatten().long()
+    histograms = torch.zeros(segments, len(codes))
+    histograms.index_put_((flat, inverse), torch.ones(len(flat)), accumulate=True)
+    shares = histograms / histograms.sum(1, keepdim=True).clamp_min(1.0)
+    overlap = torch.minimum(shares[:, None, :], shares[None, :, :]).sum(-1)
+    return [[round(float(v), 3) for v in row] for row in overlap]
+
+
 def main(args: Args) -> dict[str, dict[str, float]]:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
@@ -310,7 +325,10 @@ def main(args: Args) -> dict[str, dict[str, float]]:
         recon = autoencoder(frames_to_tensor(test_frames[:, 1:].flatten(0, 1)))
     target = frames_to_tensor(test_frames[:, 1:].flatten(0, 1))
     shape = (args.eval_episodes, args.horizon, 3, env.frame_size, env.frame_size)
-    results = {"recon": {"psnr": float(psnr(recon.view(shape), target.view(shape)).mean())}}
+    results = {"recon": {"psnr": float(psnr(recon.view(shape), target.view(shape)).mean()),
+                         "code_overlap": code_overlap(test_features, token_labels(test["labels"]), env.num_agents + 1)}}
+    agents = torch.tensor(results["recon"]["code_overlap"])[1:, 1:] - torch.eye(env.num_agents)
+    print(f"autoencoder: largest overlap of two agents' codes {float(agents.max()):.3f} (0: none shared)", flush=True)
     copy = (train_features[:, 1:] - train_features[:, :-1]).pow(2).flatten(2).sum(-1).mean()
     print(f"copy-last-frame prediction_sse on the training videos: {float(copy):.4f}", flush=True)
     actions, positions = torch.from_numpy(test["actions"]), torch.from_numpy(test["positions"])

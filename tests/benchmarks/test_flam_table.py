@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.flam_table import (agent_slot_share, agent_slots, per_agent, main, parse_args, slot_sharing, token_labels, train_lam,
-                                   train_two_stage)
+from benchmarks.flam_table import (agent_slot_share, agent_slots, code_overlap, per_agent, main, parse_args,
+                                   slot_sharing, token_labels, train_lam, train_two_stage)
 from causal.flam import FLAM, FLAMConfig
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -33,7 +33,10 @@ def test_flam_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert len(results["flam"]["positions_importance"]) == 4 and len(results["flam"]["agent_slot_share"][0]) == 5
     assert all(0.0 <= results["flam"][f"dci_{x}{s}_matched"] <= 1.0 for x in "dci" for s in ("", "_positions"))
     assert 0.0 <= results["flam"]["every_agent_own_slot"] <= 1.0
-    assert "| flam |" in capsys.readouterr().out
+    overlap = np.array(results["recon"]["code_overlap"])  # the autoencoder's codes, background and 4 agents
+    assert overlap.shape == (5, 5) and np.allclose(overlap, overlap.T) and np.allclose(np.diag(overlap), 1.0)
+    printed = capsys.readouterr().out
+    assert "| flam |" in printed and "largest overlap of two agents' codes" in printed
 
 
 def test_agent_slots_and_sharing_on_a_hand_built_attention() -> None:
@@ -109,3 +112,13 @@ def test_the_binding_term_needs_a_mask_prior(capsys: pytest.CaptureFixture[str])
         parse_args(["--mask-binding", "1"])
     assert "needs a --mask-prior" in capsys.readouterr().err
     assert parse_args(["--mask-binding", "1", "--mask-prior", "annealed"]).mask_binding == 1.0
+
+
+def test_code_overlap_is_one_for_the_same_codes_and_zero_for_none_in_common() -> None:
+    a, b, c = [1.0, 0.0], [0.0, 1.0], [0.5, 0.5]
+    features = torch.tensor([[a, a, b, c], [a, b, b, c]])  # [frames, n, d_e]
+    labels = torch.tensor([[0, 1, 2, 3], [0, 1, 2, 3]])
+    overlap = code_overlap(features, labels, 4)
+    assert overlap[0][0] == 1.0 and overlap[3][3] == 1.0
+    assert overlap[0][1] == overlap[1][0] == 0.5  # segment 1 is half code a, half b; segment 0 all a
+    assert overlap[1][2] == 0.5 and overlap[2][3] == 0.0 and overlap[0][3] == 0.0
