@@ -63,10 +63,10 @@ class FLAMConfig:
                                             "noise and no KL term, a hard bottleneck of prod(levels) codes per "
                                             "slot (not in the chapter, whose alpha is Gaussian); (): Gaussian")
     mask_binding: float = doc(0.0, "weight of the mask prior's binding term: the cross-entropy of the slot "
-                                   "attention computed without the mask against the slots the mask allows, on "
-                                   "the clips whose masks are not dropped (0: the prior only restricts the "
-                                   "attention, Dyn-O's; > 0 also teaches the slots to bind so without it; not "
-                                   "in the chapter)")
+                                   "attention computed without the mask against the slots the mask allows, "
+                                   "per segment, on the clips whose masks are not dropped (0: the prior only "
+                                   "restricts the attention, Dyn-O's; > 0 also teaches the slots to bind so "
+                                   "without it; not in the chapter)")
     lr: float = doc(1e-3, "Adam learning rate")
     lr_decay_updates: int = doc(0, "cosine decay of the learning rate from lr to lr_final over this many "
                                    "updates, constant after (0: constant lr; not in the chapter)")
