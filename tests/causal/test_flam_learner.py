@@ -131,6 +131,9 @@ def test_only_multigrid_layouts_and_sound_settings_are_taken() -> None:
                 {"mask_binding": 1.0, "mask_prior": "none"}):
         with pytest.raises(ValueError):
             FLAMRunConfig(**bad)
+    with pytest.raises(ValueError, match="--flam-mask-binding 0 with --flam-mask-prior none"):
+        FLAMRunConfig(mask_prior="none")  # the binding term is on by default: the error says what to set
+    assert FLAMRunConfig(mask_prior="none", mask_binding=0.0).mask_binding == 0.0
     method = get_method("flam")
     assert method.envs == ("multigrid-agents", "multigrid-agents-correlated") and method.latent_actions is not None
 
