@@ -59,7 +59,8 @@ class FLAMRunConfig:
     0.83/0.81 (results.md, "A run with the binding term"). ``mask_prior`` none needs ``mask_binding`` 0."""
 
     num_slots: int = doc(0, "K: slots, each with its own latent action; 0 = agents + 1 (one per agent and "
-                            "the background; the correlated variant's K = 3 + 1 is --flam-num-slots 4)")
+                            "the background; the correlated variant's K = 3 + 1 is --flam-num-slots 4 with "
+                            "--flam-mask-prior none --flam-mask-binding 0)")
     slot_dim: int = doc(32, "D: size of a slot and of the attention blocks")
     action_dim: int = doc(8, "d_a: size of one slot's latent action")
     iterations: int = doc(3, "slot-attention iterations, each followed by temporal self-attention")
@@ -127,12 +128,24 @@ def multigrid_geometry(layout: FactorLayout) -> tuple[int, int]:
     return n, int(layout.sizes[0])
 
 
+def check_layout(layout: FactorLayout, config: FLAMRunConfig) -> None:
+    """``ValueError`` unless ``layout`` is a MultiGrid-agents one whose agents ``config``'s slots can take:
+    the annealed mask prior gives each agent's segment and the background a slot of its own."""
+    agents, _ = multigrid_geometry(layout)
+    if config.mask_prior == "annealed" and 0 < config.num_slots < agents + 1:
+        raise ValueError(f"--flam-mask-prior annealed gives each of the {agents} agents and the background a slot of "
+                         f"its own: --flam-num-slots must be 0 or >= {agents + 1}, got {config.num_slots} (fewer "
+                         f"slots, e.g. the correlated variant's K = 3 + 1, run with --flam-mask-prior none "
+                         f"--flam-mask-binding 0)")
+
+
 class FLAMModel(nn.Module):
     """The FSQ autoencoder and FLAM of one MultiGrid-agents layout (one feature token per grid cell)."""
 
     def __init__(self, layout: FactorLayout, config: FLAMRunConfig) -> None:
         super().__init__()
         self.layout, self.config = layout, config
+        check_layout(layout, config)
         self.num_agents, self.grid_size = multigrid_geometry(layout)
         self.autoencoder = FSQAutoencoder(FSQ_LEVELS)
         self.lam = FLAM(config.lam(self.num_agents), self.grid_size ** 2)

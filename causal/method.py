@@ -185,6 +185,9 @@ class Method:
     """Per-slot latent actions learned from video (FLAM): the summary's ``latent_actions`` block, from the final model."""
     envs: tuple[str, ...] = ()
     """Environments the method runs on (empty: any); ``causeway run`` refuses others before starting."""
+    check_layout: Callable[[FactorLayout, Any], None] | None = None
+    """``(layout, config)``: raises ``ValueError`` for settings the env's factors cannot take (``causeway
+    run`` calls it before starting, so a learner never fails on them mid-run)."""
     resumable: tuple[str, ...] = ()
     """Config fields a resumed learner may change (left out of the checkpoint fingerprint)."""
     prioritised: bool = False

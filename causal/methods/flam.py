@@ -9,7 +9,7 @@ and DCI of the final model's latent actions on unseen videos).
 """
 from __future__ import annotations
 
-from causal.flam_learner import FLAMRunConfig, FLAMTrainer, LatentActionScores, model_from_config
+from causal.flam_learner import FLAMRunConfig, FLAMTrainer, LatentActionScores, check_layout, model_from_config
 from causal.method import Method
 
 METHOD = Method(
@@ -20,4 +20,5 @@ METHOD = Method(
     model_from_config=model_from_config,
     latent_actions=LatentActionScores(),
     envs=("multigrid-agents", "multigrid-agents-correlated"),
+    check_layout=check_layout,
 )

@@ -16,7 +16,8 @@ from typing import Any
 
 from causal.intrinsic import make_reward
 from causal.method import Method, has_standard_errors, permuted_null_refusal
-from causal.methods import get_method
+from causal.factored import FactorLayout
+from causal.methods import get_method, method_config
 from envs.registry import EnvEntry, check_options, env_entry, make_env
 from proto.messages import NULL_BIASES, EnvSpec
 from services.bus.credentials import RouterAuth, role_file, write_run_secrets
@@ -57,6 +58,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
     check_options(cfg.env, cfg.env_options)
     if method.envs and cfg.env not in method.envs:
         raise ValueError(f"method {cfg.method!r} runs on {', '.join(method.envs)} only, not {cfg.env!r}")
+    if method.check_layout is not None:
+        method.check_layout(FactorLayout.from_spec(run_env_spec(cfg)), method_config(cfg.models, cfg.method))
     _check_policy(cfg, method.intrinsic)
     _check_skill_discovery(cfg, entry)
     if cfg.target_f1 and method.global_graph is None:

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from causal.factored import FactorLayout
-from causal.flam_learner import FLAMRunConfig, FLAMTrainer, LatentActionScores, multigrid_geometry, token_labels
+from causal.flam_learner import (FLAMRunConfig, FLAMTrainer, LatentActionScores, check_layout, multigrid_geometry,
+                                 token_labels)
 from causal.method import export_tensors, import_tensors
 from causal.methods import get_method, model_from_config_json
 from envs.chemical_pixels import ChemicalPixelsEnv
@@ -143,3 +144,23 @@ def test_token_labels_take_one_label_per_grid_cell() -> None:
     frames, labels = env.render_positions(np.array([[[0, 0], [3, 2]]]))
     tokens = token_labels(labels)
     assert tokens.shape == (1, 16) and tokens[0, 0] == 1 and tokens[0, 2 * 4 + 3] == 2 and int(tokens.sum()) == 3
+
+
+def test_the_annealed_prior_needs_a_slot_per_agent_and_the_background() -> None:
+    correlated = MultiGridAgentsEnv(num_agents=3, grid_size=4, correlated=True)
+    layout = FactorLayout.from_spec(correlated.env_spec())
+    few = FLAMRunConfig(**{**TINY.__dict__, "num_slots": 3})  # K = 2 + 1 for 3 agents, two acting alike
+    with pytest.raises(ValueError, match="--flam-num-slots must be 0 or >= 4, got 3"):
+        check_layout(layout, few)
+    with pytest.raises(ValueError, match="--flam-num-slots must be 0 or >= 4"):
+        FLAMTrainer(layout, few, seed=0)  # the model refuses them too, not only a run's start
+    for fine in ({"num_slots": 0}, {"num_slots": 4}, {"num_slots": 3, "mask_prior": "none", "mask_binding": 0.0}):
+        check_layout(layout, FLAMRunConfig(**{**TINY.__dict__, **fine}))
+    # without a prior, fewer slots than segments train (the correlated variant's test: K = agents - 1 + 1)
+    trainer = FLAMTrainer(layout, FLAMRunConfig(**{**TINY.__dict__, "num_slots": 3, "mask_prior": "none",
+                                                   "mask_binding": 0.0}), seed=0)
+    videos = record_videos(correlated, 2, 2, seed=0)
+    positions = torch.from_numpy(videos["positions"].reshape(2, 3, 6).astype(np.float32))
+    for _ in range(3):
+        stats = trainer.update(positions[:, :-1].reshape(4, 6), torch.zeros(4, 1), positions[:, 1:].reshape(4, 6))
+    assert stats["phase"] == 1.0 and math.isfinite(stats["loss"])
