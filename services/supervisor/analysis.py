@@ -44,6 +44,7 @@ class RunRecord:
     failure: str = ""
     local_report: LocalGraphReport | None = None
     local_history: list[dict[str, float]] = field(default_factory=list)
+    live_history: list[dict[str, float]] = field(default_factory=list)
 
 
 def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) -> dict[str, Any]:
@@ -63,6 +64,9 @@ def analyse(cfg: RunConfig, run_dir: Path, record: RunRecord, stream: TextIO) ->
         local_report.plot_curve(record.local_history, run_dir / "local_learning_curve.png")
     if final_local is not None:
         add_final_local_graph(content, final_local, run_dir)
+    if record.live_history:
+        content["live_history"] = record.live_history
+        reporting.plot_live_scores(record.live_history, run_dir / "live_scores.png")
     method = get_method(cfg.method)
     if method.slots is not None and cfg.evaluate and not record.failure:
         stream.write("scoring the final model's slots (FG-ARI, no masks) ...\n")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import matplotlib
 
@@ -218,6 +218,42 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
         keys += ["identifiable_f1", "identifiable_best_threshold_f1"]
     keys += ["with_self_best_threshold_f1"]  # the figure Table 3.1 reports
     plot_scores(history, keys, "score", path)
+
+
+def live_row(values: Mapping[str, float], last: Mapping[str, float] | None, elapsed: float) -> dict[str, float] | None:
+    """A row of the learner's live-score history from one of its beats: the ``live_*`` values (a
+    trainer's scores on fixed unseen data, e.g. FLAM's PSNR, DCI and per-slot KL; the prefix dropped)
+    with the beat's ``time``, ``updates`` and ``env_steps``; None when the beat carries none or the same
+    ones as ``last`` (a beat repeats the newest scores until the trainer computes the next)."""
+    live = {key.removeprefix("live_"): float(v) for key, v in values.items() if key.startswith("live_")}
+    if not live or (last is not None and all(last.get(key) == v for key, v in live.items())):
+        return None
+    return {"time": round(elapsed, 3), "updates": float(values.get("updates", 0.0)),
+            "env_steps": float(values.get("env_steps", 0.0)), **live}
+
+
+def plot_live_scores(history: list[dict[str, float]], path: Path) -> None:
+    """The learner's live scores against its updates: the scores in [0, 1] (DCI, FG-ARI) on the left,
+    the others (PSNR in dB, KL in nats) on the right."""
+    if not history:
+        return
+    keys = [k for k in history[-1] if k not in ("time", "updates", "env_steps")]
+    unit = [k for k in keys if all(0.0 <= h.get(k, 0.0) <= 1.0 for h in history)]
+    panels = [(unit, "score"), ([k for k in keys if k not in unit], "dB / nats")]
+    panels = [(ks, label) for ks, label in panels if ks]
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4), squeeze=False)
+    updates = [h["updates"] for h in history]
+    for ax, (ks, label) in zip(axes[0], panels):
+        for key in ks:
+            ax.plot(updates, [h.get(key, float("nan")) for h in history], label=key)
+        ax.set_xlabel("learner updates")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+    fig.suptitle("live scores of the learner on fixed unseen data")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def plot_scores(history: list[dict[str, float]], keys: list[str] | tuple[str, ...], ylabel: str, path: Path) -> None:

@@ -37,6 +37,7 @@ from services.supervisor.analysis import RunRecord, analyse, git_revision
 from services.supervisor.config import RunConfig
 from services.supervisor.processes import FatalServiceError, ManagedProcess, leftovers, stop_all
 from services.supervisor.progress import Progress
+from services.supervisor.report import live_row
 from services.supervisor.report_skills import skill_facts
 from services.supervisor.report_slots import label_facts, slot_facts
 from services.supervisor.stop_rules import StopRules
@@ -63,6 +64,8 @@ class Supervisor:
         self.revision: str | None = None  # the commit that runs, read once at the start
         self.last_local: LocalGraphReport | None = None
         self.local_history: list[dict[str, float]] = []
+        self.live_history: list[dict[str, float]] = []
+        """The learner's live scores (``live_*`` in its beats) each time they change: summary ``live_history``."""
         self.stop_reason = ""
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -239,6 +242,12 @@ class Supervisor:
                 log.warning("stats beats from %s/%s, which this run did not start: ignored", stats.service, stats.instance)
             return
         self._track_policy_version(stats)
+        if stats.service == "dynamics-learner":
+            with self._lock:
+                row = live_row(stats.values, self.live_history[-1] if self.live_history else None,
+                               time.monotonic() - self.progress.started)
+                if row is not None:
+                    self.live_history.append(row)
         self.progress.on_stats(stats)
 
     def _track_policy_version(self, stats: ServiceStats) -> None:
@@ -370,7 +379,7 @@ class Supervisor:
         with self._lock:
             record = RunRecord(facts, self.last_report, list(self.history), failure=self.failure,
                                policy_timeline=list(self.policy_timeline), local_report=self.last_local,
-                               local_history=list(self.local_history))
+                               local_history=list(self.local_history), live_history=list(self.live_history))
             if cfg.collector != "random":
                 record.policy_stats = {ident: dict(s.values) for ident, s in self.progress.stats.items()}
         return analyse(cfg, self.run_dir, record, self.progress.stream)

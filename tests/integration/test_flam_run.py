@@ -37,6 +37,10 @@ def test_a_flam_run_trains_latent_actions_and_writes_their_scores(tmp_path: Path
     assert 0.0 < scores["psnr"] < 100.0 and all(0.0 <= scores[k] <= 1.0 for k in ("dci_d", "dci_c", "dci_i"))
     assert scores["num_slots"] == 5 and len(scores["slot_kl"]) == 5 and scores["videos"] == 100
     assert scores["updates"] > 5, "the learner never reached the latent-action phase"
+    live = summary["live_history"]  # the learner's live scores (every 5 updates here) as the run saw them
+    assert live and all("psnr" in row and "dci_d" in row for row in live), live
+    assert [row["updates"] for row in live] == sorted(row["updates"] for row in live)
+    assert (run_dir / "live_scores.png").stat().st_size > 1000
     labels = summary["latent_labels"]
     assert labels["labelled_steps"] > 0 and labels["weights_version"] >= 1, labels
     assert len(labels["slot_kl"]) == 5 and all(kl >= 0.0 for kl in labels["slot_kl"])
