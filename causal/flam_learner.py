@@ -56,7 +56,9 @@ class FLAMRunConfig:
     2026-12-07, the mask prior's binding term (weight 1), a 3,000-update autoencoder and the prior
     annealed over 12,000 updates: on seed 1 at the same load they took the run's latent actions against
     the actions from DCI D/C 0.05/0.05 to 0.76/0.73 (0.42/0.34 in a second run) and its slots against the
-    positions from 0.50/0.46 to 0.83/0.81; 4 of 5 seeds bind (results.md, "A run with the binding term"). ``mask_prior`` none needs ``mask_binding`` 0."""
+    positions from 0.50/0.46 to 0.83/0.81; 4 of 5 seeds bind (results.md, "A run with the binding term").
+    ``mask_prior`` none needs ``mask_binding`` 0. A run directory from before resumes only with the old
+    values given (``--flam-mask-binding 0 --flam-ae-updates 300 --flam-lam-updates 1200``)."""
 
     num_slots: int = doc(0, "K: slots, each with its own latent action; 0 = agents + 1 (one per agent and "
                             "the background; the correlated variant's K = 3 + 1 is --flam-num-slots 4 with "

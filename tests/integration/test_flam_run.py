@@ -52,7 +52,8 @@ def test_a_flam_run_trains_latent_actions_and_writes_their_scores(tmp_path: Path
 @pytest.mark.parametrize("flags, message", [
     (["--env", "chemical"], "runs on multigrid-agents, multigrid-agents-correlated only"),
     (["--env", "multigrid-agents", "--flam-slot-dim", "6"], "slot_dim must be a multiple of 4"),
-    (["--env", "multigrid-agents", "--flam-mask-prior", "none"], "set --flam-mask-binding 0 with --flam-mask-prior none"),
+    (["--env", "multigrid-agents", "--flam-mask-prior", "none"],
+     "set --flam-mask-binding 0 with --flam-mask-prior none"),
     (["--env", "multigrid-agents-correlated", "--flam-num-slots", "4"], "--flam-num-slots must be 0 or >= 5, got 4"),
 ])
 def test_flam_refuses_bad_runs_before_starting(tmp_path: Path, flags: list[str], message: str) -> None:
