@@ -38,6 +38,7 @@ from causal.factored import FactorLayout
 from causal.flam import FLAM, FLAMConfig, LAMTrainer, encode_clips, psnr, rollout
 from causal.flam_nets import FSQAutoencoder, gaussian_kl
 from causal.method import layout_from_config, model_config_json
+from causal.schedules import cosine_lr
 from causal.slots import FEATURE_STRIDE, frames_to_tensor
 from envs.multigrid_agents import NUM_MOVES, MultiGridAgentsEnv, record_videos
 from proto.messages import EnvSpec
@@ -84,6 +85,10 @@ class FLAMRunConfig:
     lam_updates: int = doc(12000, "U of the mask prior's schedule (latent-action updates until masks are never given)")
     ae_lr: float = doc(2e-3, "Adam learning rate of the autoencoder")
     lr: float = doc(2e-3, "Adam learning rate of the latent action model")
+    lr_decay_updates: int = doc(0, "cosine decay of the latent action model's learning rate from lr to "
+                                   "lr_final over this many latent-action updates, constant after (0: "
+                                   "constant lr; not in the chapter)")
+    lr_final: float = doc(1e-4, "the latent action model's learning rate at the end of the decay")
     batch_size: int = doc(16, "transitions per update (autoencoder: two frames each; FLAM: one clip each)")
     live_every: int = doc(200, "latent-action updates between live scores on fixed unseen videos (0: none)")
     live_videos: int = doc(16, "unseen videos of the live scores")
@@ -96,7 +101,9 @@ class FLAMRunConfig:
             raise ValueError("num_slots, ae_updates, lam_updates and live_every must not be negative")
         if self.slot_dim % 4:
             raise ValueError(f"slot_dim must be a multiple of 4 (attention heads), got {self.slot_dim}")
-        if not all(math.isfinite(x) and x > 0 for x in (self.ae_lr, self.lr)):
+        if self.lr_decay_updates < 0:
+            raise ValueError(f"lr_decay_updates must not be negative, got {self.lr_decay_updates}")
+        if not all(math.isfinite(x) and x > 0 for x in (self.ae_lr, self.lr, self.lr_final)):
             raise ValueError("FLAM learning rates must be positive finite numbers")
         if not (math.isfinite(self.beta_kl) and self.beta_kl >= 0):
             raise ValueError(f"beta_kl must be a finite number >= 0, got {self.beta_kl}")
@@ -115,7 +122,8 @@ class FLAMRunConfig:
     def lam(self, num_agents: int) -> FLAMConfig:
         return FLAMConfig(num_slots=self.num_slots or num_agents + 1, slot_dim=self.slot_dim,
                           action_dim=self.action_dim, iterations=self.iterations, levels=FSQ_LEVELS,
-                          beta_kl=self.beta_kl, aggregator=self.aggregator, lr=self.lr, batch_size=self.batch_size,
+                          beta_kl=self.beta_kl, aggregator=self.aggregator, lr=self.lr,
+                          lr_decay_updates=self.lr_decay_updates, lr_final=self.lr_final, batch_size=self.batch_size,
                           temporal_attention=self.temporal_attention, coupling=self.coupling,
                           mask_binding=self.mask_binding)
 
@@ -219,7 +227,9 @@ class FLAMTrainer:
 
     @property
     def lr(self) -> float:
-        return self.config.ae_lr if self.phase == "autoencoder" else self.config.lr
+        if self.phase == "autoencoder":
+            return self.config.ae_lr
+        return cosine_lr(self.config.lr, self.config.lr_final, self.lam_trainer.updates, self.config.lr_decay_updates)
 
     def frames(self, states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames (uint8 ``[..., H, W, 3]``) and pixel labels of states ``[..., 2N]``, drawn by the renderer."""

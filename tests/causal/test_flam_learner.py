@@ -3,6 +3,7 @@ model), the live scores, weights through the msgpack ``Weights`` message, checkp
 settings it refuses, and the ``latent_actions`` scorer of a run's summary."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -122,6 +123,25 @@ def test_the_scorer_writes_the_contract_keys_of_unseen_videos() -> None:
     json.dumps(scores)
 
 
+def test_the_latent_action_learning_rate_decays_over_its_own_updates_and_may_change_on_resume() -> None:
+    decayed = dataclasses.replace(TINY, lr=2e-3, lr_final=1e-4, lr_decay_updates=2)
+    trainer = FLAMTrainer(_layout(), decayed, seed=0)
+    rates = []
+    for u in range(5):
+        rates.append(trainer.lr)
+        trainer.update(*_batch(u))
+        if trainer.phase == "latent_actions":  # the rate the optimiser used for the update just made
+            assert trainer.lam_trainer.optimizer.param_groups[0]["lr"] == pytest.approx(rates[-1], rel=1e-9)
+    # two autoencoder updates at ae_lr, then the cosine over the latent-action updates: lr, midway, lr_final
+    assert rates == pytest.approx([2e-3, 2e-3, 2e-3, 1.05e-3, 1e-4], rel=1e-9)
+    method = get_method("flam")
+    constant = json.loads(method.config_json(_layout(), TINY))
+    assert method.fingerprint(method.config_json(_layout(), decayed)) == method.fingerprint(json.dumps(constant))
+    for key in ("lr_decay_updates", "lr_final"):  # a run directory from before the fields resumes too
+        constant["flam"].pop(key)
+    assert method.fingerprint(json.dumps(constant)) == method.fingerprint(method.config_json(_layout(), TINY))
+
+
 def test_only_multigrid_layouts_and_sound_settings_are_taken() -> None:
     assert multigrid_geometry(_layout()) == (2, 4)
     chemical = FactorLayout.from_spec(ChemicalPixelsEnv(graph="chain", num_objects=2).env_spec())
@@ -129,6 +149,7 @@ def test_only_multigrid_layouts_and_sound_settings_are_taken() -> None:
         multigrid_geometry(chemical)
     for bad in ({"slot_dim": 6}, {"lr": 0.0}, {"beta_kl": -1.0}, {"beta_kl": math.nan}, {"ae_updates": -1},
                 {"aggregator": "sum"}, {"mask_prior": "always"}, {"horizon": 0}, {"mask_binding": -1.0},
+                {"lr_decay_updates": -1}, {"lr_final": 0.0},
                 {"mask_binding": 1.0, "mask_prior": "none"}):
         with pytest.raises(ValueError):
             FLAMRunConfig(**bad)
