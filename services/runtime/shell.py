@@ -201,12 +201,15 @@ class ServiceShell:
 
     def wait_for_spec(self, poll_s: float = 0.5, key: str | None = None) -> EnvSpec | None:
         """Query the EnvSpec on ``key`` (default: the env-workers' ``env/spec``) until one answers (None if
-        stopped first)."""
-        while not self.stopping.is_set():
+        stopped first). Control commands are applied while it waits: a run stopped before any spec came
+        (a frames run stopped before its slots froze) must not leave the service querying forever."""
+        while True:
+            self.poll_control()
+            if self.stopping.is_set():
+                return None
             for spec in self.query(key or topics.env_spec(self.cfg.run_id), EnvSpec, timeout=poll_s):
                 return spec
             self.stopping.wait(poll_s)
-        return None
 
     def query(self, key: str, expected: type, timeout: float = 1.0) -> list[Any]:
         """The decoded answers of a query on ``key``; an answer off the contract is counted and dropped."""

@@ -1,6 +1,8 @@
-"""The service shell's helpers every service loop uses: the checkpoint when due, the decoded query."""
+"""The service shell's helpers every service loop uses: the checkpoint when due, the decoded query, the
+wait for the EnvSpec that a stop ends."""
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -70,3 +72,21 @@ def test_a_query_decodes_the_answers_and_counts_one_off_the_contract() -> None:
     finally:
         shell.close()
         server.close()
+
+
+def test_a_stop_ends_the_wait_for_a_spec_nobody_serves() -> None:
+    """A run stopped before its spec came (a frames run stopped before the slots froze) once left the
+    waiting service querying forever: the wait must apply control commands."""
+    bus = InMemoryBus()
+    shell = _shell(bus)
+    operator = InMemoryTransport(bus)
+    stop = threading.Timer(0.3, lambda: operator.publish(topics.control("shell", "all"),
+                                                          encode(Control("stop", issued_at=time.time()))))
+    try:
+        stop.start()
+        start = time.monotonic()
+        assert shell.wait_for_spec(poll_s=0.05) is None
+        assert shell.stopping.is_set() and time.monotonic() - start < 10.0
+    finally:
+        stop.cancel()
+        shell.close()
