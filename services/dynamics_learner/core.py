@@ -121,7 +121,8 @@ class DynamicsLearnerCore:
                            "model": model}, sort_keys=True)
 
     def checkpoint(self, path: Path) -> None:
-        save_checkpoint({"fingerprint": self.fingerprint(), "trainer": self.trainer.state_dict(),
+        save_checkpoint({"fingerprint": self.fingerprint(), "model_config": self.trainer.config_json(),
+                         "trainer": self.trainer.state_dict(),
                          "replay": self.replay.state_dict(),
                          "version": self.version, "env_steps": self.env_steps,
                          "graph_version": self.graph_version, "seq_gaps": self.gaps.state_dict()}, path)

@@ -95,9 +95,17 @@ def load_model(run_dir: Path) -> nn.Module:
     return model_from_checkpoint(saved)
 
 
+def checkpoint_model_config(saved: dict) -> str:
+    """The model configuration (``Method.config_json``) of a loaded dynamics-learner checkpoint, with
+    every setting the run last trained under (``model_config``). The fingerprint leaves the resumable
+    ones out (the learning-rate schedule), so a checkpoint written before ``model_config`` was kept
+    gives those at their defaults."""
+    return saved.get("model_config") or json.dumps(json.loads(saved["fingerprint"])["model"], sort_keys=True)
+
+
 def model_from_checkpoint(saved: dict) -> nn.Module:
-    """The model of a loaded dynamics-learner checkpoint, in eval mode."""
-    model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
+    """The model of a loaded dynamics-learner checkpoint (:func:`checkpoint_model_config`), in eval mode."""
+    model = model_from_config_json(checkpoint_model_config(saved))
     model.load_state_dict(saved["trainer"]["model"])
     return model.eval()
 

@@ -33,7 +33,7 @@ from services.runtime.device import DEVICES, resolve_device
 from services.supervisor import report as reporting
 from services.supervisor import report_local as local_report
 from services.supervisor.report_reward import plot_abstraction
-from services.supervisor.evaluation import model_from_checkpoint
+from services.supervisor.evaluation import checkpoint_model_config, model_from_checkpoint
 from services.supervisor.wiring import run_env_spec, service_configs
 
 
@@ -45,9 +45,9 @@ def final_core(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec
     if learner is None or not core.restore(run_dir / "checkpoints" / "graph-evaluator-0.pt") or not core.heldout.size:
         return None
     model = model_from_checkpoint(learner)
-    config = json.loads(learner["fingerprint"])["model"]
-    core.load_weights(Weights(model=config["model"], version=int(learner["version"]),
-                              config_json=json.dumps(config, sort_keys=True),
+    config = checkpoint_model_config(learner)
+    core.load_weights(Weights(model=json.loads(config)["model"], version=int(learner["version"]),
+                              config_json=config,
                               tensors=export_tensors(model), updates=int(learner["trainer"]["updates"]),
                               env_steps=int(learner["env_steps"])))
     return core

@@ -37,7 +37,7 @@ def test_a_dyno_run_trains_slots_and_writes_their_fg_ari(tmp_path: Path) -> None
     assert slots["num_slots"] == 3 and slots["frame_size"] == 16
     assert slots["updates"] > sum(PHASES.values()), "the learner never reached the world-model phase"
     saved = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
-    model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
+    model = model_from_config_json(saved["model_config"])
     model.load_state_dict(saved["trainer"]["model"])
 
 

@@ -45,7 +45,7 @@ def test_a_flam_run_trains_latent_actions_and_writes_their_scores(tmp_path: Path
     assert labels["labelled_steps"] > 0 and labels["weights_version"] >= 1, labels
     assert len(labels["slot_kl"]) == 5 and all(kl >= 0.0 for kl in labels["slot_kl"])
     saved = load_checkpoint(run_dir / "checkpoints" / "dynamics-learner-0.pt")
-    model = model_from_config_json(json.dumps(json.loads(saved["fingerprint"])["model"]))
+    model = model_from_config_json(saved["model_config"])
     model.load_state_dict(saved["trainer"]["model"])
 
 

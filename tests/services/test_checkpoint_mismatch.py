@@ -11,7 +11,8 @@ from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.graph_evaluator.core import GraphEvaluatorCore
-from services.runtime.checkpoint import CheckpointMismatch
+from services.runtime.checkpoint import CheckpointMismatch, load_checkpoint
+from services.supervisor.evaluation import model_from_checkpoint
 
 
 def spec(graph: str):
@@ -36,6 +37,9 @@ def test_learner_resumes_under_another_learning_rate_schedule(tmp_path) -> None:
     DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small), spec("chain")).checkpoint(path)
     decayed = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **small, cdl_lr_decay_updates=500, cdl_lr_final=2e-4), spec("chain"))
     assert decayed.restore(path) and decayed.trainer.lr == decayed.trainer.cfg.lr_at(0)
+    decayed.checkpoint(path)  # the final model (a run's summary) is rebuilt with the schedule it ran under
+    rebuilt = model_from_checkpoint(load_checkpoint(path))
+    assert (rebuilt.cfg.lr_decay_updates, rebuilt.cfg.lr_final) == (500, 2e-4)
 
 
 def test_learner_resumes_in_another_training_precision(tmp_path) -> None:
