@@ -18,7 +18,9 @@ agent's cell (x and y probes, summed per agent), FLAM and the two-stage baseline
 model has no factor states). Table 8.5-8.6's ablations of FLAM: ``--no-temporal-attention`` (SAVi-style
 slots) and ``--coupling global`` (Global-Coupled FLAM). ``dci_*_positions_latent``: the latent actions (FLAM per slot,
 monolithic in K chunks of ``d_a``: the equal-capacity comparison) against the positions at t+1 they
-were inferred with. ``random``: Gaussian codes of the same shapes (chance).
+were inferred with. ``random``: Gaussian codes of the same shapes (chance). ``observed moves``: each
+agent's observed move as its code (``envs.multigrid_agents.displacement_codes``), the ceiling of
+the latent actions against the actions (a blocked move looks like a stay).
 One torch thread. Budget: results.md's run (1,200 updates per model) took 4.5 min per autoencoder,
 13 min of FLAM training and 15 of monolithic training, about 22 minutes of wall time with the models
 in parallel processes on a loaded 2-core machine (load average 12-15); under 30 minutes either way.
@@ -41,7 +43,7 @@ from causal.flam import (
 )
 from causal.flam_nets import FSQAutoencoder
 from causal.slots import frames_to_tensor
-from envs.multigrid_agents import MultiGridAgentsEnv, record_videos
+from envs.multigrid_agents import NUM_MOVES, MultiGridAgentsEnv, displacement_codes, record_videos
 
 
 @dataclass(frozen=True)
@@ -353,6 +355,8 @@ def main(args: Args) -> dict[str, dict[str, float]]:
                                   **matched_dci(model, test_features, actions, positions, slots, env.grid_size)})
         print(f"{name}: {json.dumps(results[name])}", flush=True)
     results["random"] = random_codes(actions, positions, config, env.grid_size, args.seed)
+    results["observed moves"] = dci_keys(dci(torch.from_numpy(displacement_codes(positions.numpy())),
+                                             actions.flatten(0, 1), classes=NUM_MOVES))
     print_table(results, args)
     if args.out:
         Path(args.out).write_text(json.dumps({"args": vars(args), "results": results}, indent=2))

@@ -40,7 +40,7 @@ from causal.flam_nets import FSQAutoencoder, gaussian_kl
 from causal.method import layout_from_config, model_config_json
 from causal.schedules import cosine_lr
 from causal.slots import FEATURE_STRIDE, frames_to_tensor
-from envs.multigrid_agents import NUM_MOVES, MultiGridAgentsEnv, record_videos
+from envs.multigrid_agents import NUM_MOVES, MultiGridAgentsEnv, displacement_codes, record_videos
 from proto.messages import EnvSpec
 from proto.settings import doc
 
@@ -184,7 +184,9 @@ def latent_action_scores(model: FLAMModel, videos: dict[str, np.ndarray]) -> dic
     """The scores of Tables 8.1-8.2 on ``videos`` (:func:`envs.multigrid_agents.record_videos`): PSNR of
     the rollout over the whole video (latent actions inferred from the true frames, predictions fed
     back), DCI of the latent actions' posterior means against the agents' actions (each slot one
-    factor: ``dci_d``, ``dci_c``, ``dci_i``), DCI of the slots' states against the agents' positions
+    factor: ``dci_d``, ``dci_c``, ``dci_i``), the same DCI of each agent's observed move on the same
+    videos (:func:`envs.multigrid_agents.displacement_codes`: the ceiling of the latent actions', since
+    a blocked move looks like a stay; ``dci_*_ceiling``), DCI of the slots' states against the agents' positions
     (Table 8.2's own reading, each slot one factor, each agent's x and y one ground-truth factor:
     ``dci_d_positions``, ...), and each slot's mean KL to the prior (nats per transition: what its
     latent action carries)."""
@@ -200,8 +202,12 @@ def latent_action_scores(model: FLAMModel, videos: dict[str, np.ndarray]) -> dic
     mu, log_sigma = model.lam.idm(slots[:, :-1].reshape(-1, k, d), slots[:, 1:].reshape(-1, k, d))
     scores = dci(mu, torch.from_numpy(videos["actions"]).flatten(0, 1), classes=NUM_MOVES)
     positions = position_dci(slots.flatten(0, 1), torch.from_numpy(videos["positions"]).flatten(0, 1), model.grid_size)
+    ceiling = dci(torch.from_numpy(displacement_codes(videos["positions"])),
+                  torch.from_numpy(videos["actions"]).flatten(0, 1), classes=NUM_MOVES)
     return {"psnr": float(psnr(images.view(shape), target.view(shape)).mean()), "dci_d": scores.disentanglement,
             "dci_c": scores.completeness, "dci_i": scores.informativeness,
+            "dci_d_ceiling": ceiling.disentanglement, "dci_c_ceiling": ceiling.completeness,
+            "dci_i_ceiling": ceiling.informativeness,
             "dci_d_positions": positions.disentanglement, "dci_c_positions": positions.completeness,
             "dci_i_positions": positions.informativeness,
             "slot_kl": [float(v) for v in gaussian_kl(mu, log_sigma).mean(0)]}

@@ -148,6 +148,21 @@ class CorrelatedMultiGridAgentsEnv(MultiGridAgentsEnv):
         super().__init__(**{"correlated": True, **kwargs})
 
 
+def displacement_codes(positions: np.ndarray) -> np.ndarray:
+    """Each agent's observed move between consecutive frames, one-hot over the 9 cell offsets in
+    ``{-1, 0, 1}^2``: float ``[E * T, N, 9]`` from ``positions`` int ``[E, T + 1, N, 2]``.
+
+    The best codes a latent action can be, made from what the frames show: an agent whose move is
+    blocked (by the wall or another agent) shows the same offset as one that stays, so these codes
+    score below 1 against the actions the agents took. DCI of these codes against the actions is
+    the ceiling of the latent actions' (``dci_*_ceiling`` of FLAM's scores)."""
+    delta = np.diff(np.asarray(positions), axis=1).reshape(-1, positions.shape[2], 2)
+    if np.abs(delta).max(initial=0) > 1:
+        raise ValueError("positions move more than one cell per step")
+    index = (delta[..., 0] + 1) * 3 + (delta[..., 1] + 1)
+    return np.eye(9, dtype=np.float32)[index]
+
+
 def record_videos(env: MultiGridAgentsEnv, episodes: int, steps: int, seed: int) -> dict[str, np.ndarray]:
     """Action-free videos from a uniformly random policy, with the truth kept for scoring.
 

@@ -22,7 +22,8 @@ def test_flam_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str
                      "--ae-updates", "1", "--updates", "2", "--slot-dim", "16", "--aggregator", "broadcast",
                      "--mask-prior", "annealed", "--out", str(out)]))
     results = json.loads(out.read_text())["results"]
-    assert set(results) == {"recon", "flam", "monolithic", "random"}
+    assert set(results) == {"recon", "flam", "monolithic", "random", "observed moves"}
+    assert all(0.0 <= results["observed moves"][f"dci_{x}"] <= 1.0 for x in "dci")  # the latent actions' ceiling
     for name in ("flam", "monolithic"):
         for suffix in ("", "_positions_latent"):
             assert all(0.0 <= results[name][f"dci_{x}{suffix}"] <= 1.0 for x in "dci")
@@ -71,7 +72,7 @@ def test_the_two_stage_baseline_trains_slots_first_then_latent_actions_on_them_f
     train_lam(model, features, labels, args, "two-stage", prior="none")
     assert all(torch.equal(a, b) for a, b in zip(frozen, model.factorizer.parameters()))
     results = main(replace(args, out=str(tmp_path / "table.json")))
-    assert set(results) == {"recon", "two-stage", "random"} and results["two-stage"]["psnr"] > 0
+    assert set(results) == {"recon", "two-stage", "random", "observed moves"} and results["two-stage"]["psnr"] > 0
     assert 0.0 <= results["two-stage"]["dci_d_positions"] <= 1.0
     assert 0.0 <= results["two-stage"]["every_agent_own_slot"] <= 1.0
 

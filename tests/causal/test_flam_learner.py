@@ -116,7 +116,7 @@ def test_the_scorer_writes_the_contract_keys_of_unseen_videos() -> None:
     for u in range(3):
         trainer.update(*_batch(u))
     scores = LatentActionScores(videos=12).scores(trainer.model, _env().env_spec())
-    dci_keys = [f"dci_{x}{suffix}" for suffix in ("", "_positions") for x in "dci"]
+    dci_keys = [f"dci_{x}{suffix}" for suffix in ("", "_positions", "_ceiling") for x in "dci"]
     assert {"psnr", *dci_keys} <= set(scores)
     assert 0.0 < scores["psnr"] < 100.0 and all(0.0 <= scores[k] <= 1.0 for k in dci_keys)
     assert len(scores["slot_kl"]) == 3 and scores["videos"] == 12 and scores["horizon"] == 3

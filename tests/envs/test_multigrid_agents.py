@@ -7,11 +7,14 @@ import warnings
 
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
 from envs import make_env
 from envs.chemical_pixels import PALETTE
-from envs.multigrid_agents import MOVES, CorrelatedMultiGridAgentsEnv, MultiGridAgentsEnv, record_videos
+from causal.dci import dci
+from envs.multigrid_agents import (MOVES, NUM_MOVES, CorrelatedMultiGridAgentsEnv, MultiGridAgentsEnv,
+                                  displacement_codes, record_videos)
 
 
 def test_seeded_episodes_repeat_frame_for_frame() -> None:
@@ -107,3 +110,23 @@ def test_gymnasium_check_env(cls: type[MultiGridAgentsEnv]) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         check_env(cls(), skip_render_check=True)
+
+
+def test_displacement_codes_are_the_observed_moves_and_a_blocked_move_looks_like_a_stay() -> None:
+    # one episode, two agents: agent 0 moves right then stays; agent 1 pushes into the wall (x = 0) then moves down
+    positions = np.array([[[[2, 2], [0, 3]], [[3, 2], [0, 3]], [[3, 2], [0, 4]]]])
+    codes = displacement_codes(positions)
+    assert codes.shape == (2, 2, 9) and np.all(codes.sum(-1) == 1.0)
+    offsets = [[(int(i) // 3 - 1, int(i) % 3 - 1) for i in row] for row in codes.argmax(-1)]
+    assert offsets == [[(1, 0), (0, 0)], [(0, 0), (0, 1)]]  # agent 1's blocked step codes as a stay
+    with pytest.raises(ValueError, match="more than one cell"):
+        displacement_codes(np.array([[[[0, 0]], [[2, 0]]]]))
+
+
+def test_the_observed_moves_read_the_actions_well_but_not_perfectly() -> None:
+    """The ceiling of FLAM's latent actions against the actions: blocked moves cannot be read from frames."""
+    videos = record_videos(MultiGridAgentsEnv(num_agents=4, grid_size=8), 40, 10, seed=7)
+    scores = dci(torch.from_numpy(displacement_codes(videos["positions"])),
+                 torch.from_numpy(videos["actions"]).reshape(-1, 4), classes=NUM_MOVES)
+    assert 0.6 < scores.informativeness < 0.97
+    assert scores.importance.argmax(0).tolist() == [0, 1, 2, 3]  # each agent's action is read from its own move
