@@ -89,6 +89,9 @@ class FLAMRunConfig:
                                    "lr_final over this many latent-action updates, constant after (0: "
                                    "constant lr; not in the chapter)")
     lr_final: float = doc(1e-4, "the latent action model's learning rate at the end of the decay")
+    clip_frames: int = doc(2, "frames per training clip: 2, one transition each (the default); more: "
+                              "that many consecutive states cut from the replay, as the chapter's clips "
+                              "(the factorizer's temporal attention then sees that much history)")
     batch_size: int = doc(16, "transitions per update (autoencoder: two frames each; FLAM: one clip each)")
     live_every: int = doc(200, "latent-action updates between live scores on fixed unseen videos (0: none)")
     live_videos: int = doc(16, "unseen videos of the live scores")
@@ -101,6 +104,8 @@ class FLAMRunConfig:
             raise ValueError("num_slots, ae_updates, lam_updates and live_every must not be negative")
         if self.slot_dim % 4:
             raise ValueError(f"slot_dim must be a multiple of 4 (attention heads), got {self.slot_dim}")
+        if self.clip_frames < 2:
+            raise ValueError(f"clip_frames must be at least 2 (one transition), got {self.clip_frames}")
         if self.lr_decay_updates < 0:
             raise ValueError(f"lr_decay_updates must not be negative, got {self.lr_decay_updates}")
         if not all(math.isfinite(x) and x > 0 for x in (self.ae_lr, self.lr, self.lr_final)):
@@ -214,11 +219,13 @@ def latent_action_scores(model: FLAMModel, videos: dict[str, np.ndarray]) -> dic
 
 
 class FLAMTrainer:
-    """FLAM's two phases with the dynamics-learner's trainer interface (``update(s, a, s')``)."""
+    """FLAM's two phases with the dynamics-learner's trainer interface: ``update(s, a, s')`` on clips of
+    two frames, or, with ``clip_frames`` above 2, ``update_clips(states)`` on clips of consecutive
+    states the learner cuts from its replay."""
 
     def __init__(self, layout: FactorLayout, config: FLAMRunConfig, seed: int) -> None:
         torch.manual_seed(seed)
-        self.config, self.batch_size = config, config.batch_size
+        self.config, self.batch_size, self.clip_frames = config, config.batch_size, config.clip_frames
         self.model = FLAMModel(layout, config)
         self.render = self.model.renderer()
         self.ae_optimizer = torch.optim.Adam(self.model.autoencoder.parameters(), lr=config.ae_lr)
@@ -246,13 +253,18 @@ class FLAMTrainer:
                 torch.from_numpy(labels).view(lead + labels.shape[1:]))
 
     def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor) -> dict[str, float]:
-        """One update of the current phase; returns its losses, the phase (0, 1) and, every
-        ``live_every`` latent-action updates, the live scores (``live_*``)."""
+        """One update on clips of two frames (s, s'); see :meth:`update_clips`."""
+        return self.update_clips(torch.stack([state, next_state], dim=1))
+
+    def update_clips(self, states: torch.Tensor) -> dict[str, float]:
+        """One update of the current phase on clips of consecutive states ``[B, T, 2N]``; returns its
+        losses, the phase (0, 1) and, every ``live_every`` latent-action updates, the live scores
+        (``live_*``). The autoencoder trains on every frame of the clips."""
         phase = self.phase
         if phase == "autoencoder":
-            stats = self._autoencoder_step(torch.cat([state, next_state]))
+            stats = self._autoencoder_step(states.flatten(0, 1))
         else:
-            frames, labels = self.frames(torch.stack([state, next_state], dim=1))
+            frames, labels = self.frames(states)
             stats = self.lam_trainer.update(self.model.features(frames), token_labels(labels))
             every = self.config.live_every
             if every and (self.lam_trainer.updates - 1) % every == 0:

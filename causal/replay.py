@@ -49,6 +49,33 @@ class ReplayBuffer:
         columns = (self.state, self.action, self.next_state) + ((self.reward,) if with_reward else ())
         return tuple(torch.from_numpy(a[index]) for a in columns)
 
+    def sample_clips(self, batch: int, frames: int, tries: int = 8) -> torch.Tensor:
+        """``batch`` clips of ``frames`` consecutive states ``[batch, frames, state_dim]``: the states of
+        ``frames - 1`` rows stored one after another, each row's ``next_state`` the next row's ``state``
+        (so a clip never spans an episode's end, a held-out episode left out, or the seam between two
+        workers' batches), never across the ring's seam between newest and oldest. Windows are drawn
+        uniformly and the broken ones rejected, ``tries`` rounds of ``batch`` at most; if fewer than
+        ``batch`` are whole, whole ones are repeated. ``ValueError`` where no whole clip is found."""
+        length = frames - 1
+        if length < 1:
+            raise ValueError(f"a clip needs at least 2 frames, got {frames}")
+        if self.size < length:
+            raise ValueError(f"{frames}-frame clips need {length} stored rows, the replay holds {self.size}")
+        oldest = self.cursor if self.size == self.capacity else 0
+        found: list[np.ndarray] = []
+        for _ in range(tries):
+            rows = (oldest + self.rng.integers(0, self.size - length + 1, batch)[:, None] + np.arange(length)) % self.capacity
+            whole = np.all(self.next_state[rows[:, :-1]] == self.state[rows[:, 1:]], axis=(1, 2))
+            found.extend(rows[whole])
+            if len(found) >= batch:
+                break
+        if not found:
+            raise ValueError(f"no run of {length} consecutive transitions in {tries * batch} tries: episodes "
+                             f"shorter than {frames} frames, or rows that do not follow each other")
+        rows = np.stack(found[:batch]) if len(found) >= batch else np.stack(found)[self.rng.integers(0, len(found), batch)]
+        clips = np.concatenate([self.state[rows], self.next_state[rows[:, -1:]]], axis=1)
+        return torch.from_numpy(clips)
+
     def all(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return tuple(torch.from_numpy(a[: self.size]) for a in (self.state, self.action, self.next_state))
 

@@ -21,5 +21,5 @@ METHOD = Method(
     latent_actions=LatentActionScores(),
     envs=("multigrid-agents", "multigrid-agents-correlated"),
     check_layout=check_layout,
-    resumable=("lr_decay_updates", "lr_final"),
+    resumable=("lr_decay_updates", "lr_final", "clip_frames"),
 )

@@ -74,8 +74,14 @@ class DynamicsLearnerCore:
     def train_step(self) -> dict[str, float]:
         """One update on a replay batch. For a ``prioritised`` method the batch is drawn by priority
         and the rows get the priorities the trainer reports for them (its ``last_priorities``,
-        ``None`` to leave them: every row then keeps its first priority, and sampling is uniform)."""
-        if not isinstance(self.replay, PrioritisedReplay):
+        ``None`` to leave them: every row then keeps its first priority, and sampling is uniform).
+        A trainer whose ``clip_frames`` is above 2 is given clips of that many consecutive states
+        instead (``update_clips``, :meth:`causal.replay.ReplayBuffer.sample_clips`; FLAM)."""
+        clip_frames = getattr(self.trainer, "clip_frames", 0)
+        if clip_frames > 2:
+            clips = self.replay.sample_clips(self.trainer.batch_size, clip_frames)
+            stats = self.trainer.update_clips(*self._on_device((clips,)))
+        elif not isinstance(self.replay, PrioritisedReplay):
             stats = self.trainer.update(*self._on_device(self.replay.sample(self.trainer.batch_size,
                                                                             self.method.learns_reward)))
         else:

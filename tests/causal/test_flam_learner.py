@@ -137,7 +137,7 @@ def test_the_latent_action_learning_rate_decays_over_its_own_updates_and_may_cha
     method = get_method("flam")
     constant = json.loads(method.config_json(_layout(), TINY))
     assert method.fingerprint(method.config_json(_layout(), decayed)) == method.fingerprint(json.dumps(constant))
-    for key in ("lr_decay_updates", "lr_final"):  # a run directory from before the fields resumes too
+    for key in ("lr_decay_updates", "lr_final", "clip_frames"):  # a run directory from before the fields resumes too
         constant["flam"].pop(key)
     assert method.fingerprint(json.dumps(constant)) == method.fingerprint(method.config_json(_layout(), TINY))
 
@@ -149,7 +149,7 @@ def test_only_multigrid_layouts_and_sound_settings_are_taken() -> None:
         multigrid_geometry(chemical)
     for bad in ({"slot_dim": 6}, {"lr": 0.0}, {"beta_kl": -1.0}, {"beta_kl": math.nan}, {"ae_updates": -1},
                 {"aggregator": "sum"}, {"mask_prior": "always"}, {"horizon": 0}, {"mask_binding": -1.0},
-                {"lr_decay_updates": -1}, {"lr_final": 0.0},
+                {"lr_decay_updates": -1}, {"lr_final": 0.0}, {"clip_frames": 1},
                 {"mask_binding": 1.0, "mask_prior": "none"}):
         with pytest.raises(ValueError):
             FLAMRunConfig(**bad)

@@ -112,3 +112,40 @@ def test_prioritised_replay_round_trips_its_priorities_through_a_checkpoint() ->
                                                                   "next_state": buf.state_dict()["next_state"],
                                                                   "reward": buf.state_dict()["reward"], "added": 5})
     np.testing.assert_allclose(plain.probabilities(), np.full(5, 0.2))  # a checkpoint without priorities
+
+
+def _walk(start: float, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of one episode whose state counts up: state t, next_state t + 1."""
+    values = start + np.arange(steps + 1, dtype=np.float32)
+    return values[:-1, None], values[1:, None]
+
+
+def test_clips_are_consecutive_states_that_never_span_an_episode_end_or_the_rings_seam() -> None:
+    buffer = ReplayBuffer(capacity=40, state_dim=1, action_dim=1, seed=0)
+    for start, steps in ((0.0, 6), (100.0, 2), (200.0, 9)):  # three episodes; the second too short for 4 frames
+        state, next_state = _walk(start, steps)
+        buffer.add(state, np.zeros((steps, 1), np.float32), next_state)
+    clips = buffer.sample_clips(64, 4).numpy()[..., 0]
+    assert clips.shape == (64, 4)
+    assert np.all(np.diff(clips, axis=1) == 1.0)  # consecutive: never across an episode's end
+    assert set(clips[:, 0]) <= {0.0, 1.0, 2.0, 3.0, 200.0, 201.0, 202.0, 203.0, 204.0, 205.0, 206.0}
+    assert len(set(clips[:, 0])) > 5  # drawn across the whole buffer
+    # a full, wrapped ring: the newest rows (300...) follow the oldest kept ones only in time, never in a clip
+    state, next_state = _walk(300.0, 30)
+    buffer.add(state, np.zeros((30, 1), np.float32), next_state)
+    wrapped = buffer.sample_clips(256, 3).numpy()[..., 0]
+    assert np.all(np.diff(wrapped, axis=1) == 1.0) and 329.0 in wrapped[:, -1]
+
+
+def test_clips_are_refused_where_none_is_whole() -> None:
+    buffer = ReplayBuffer(capacity=10, state_dim=1, action_dim=1, seed=0)
+    with pytest.raises(ValueError, match="stored rows"):
+        buffer.sample_clips(4, 3)
+    for start in (0.0, 10.0, 20.0):  # one-step episodes: no two rows follow each other
+        state, next_state = _walk(start, 1)
+        buffer.add(state, np.zeros((1, 1), np.float32), next_state)
+    assert buffer.sample_clips(4, 2).shape == (4, 2, 1)
+    with pytest.raises(ValueError, match="no run of 2 consecutive transitions"):
+        buffer.sample_clips(4, 3)
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        buffer.sample_clips(4, 1)

@@ -43,3 +43,20 @@ def test_the_learner_trains_flam_exports_live_scores_and_publishes_weights() -> 
     import_tensors(model, weights.tensors)
     for name, value in model.state_dict().items():
         assert torch.equal(value, core.trainer.model.state_dict()[name]), name
+
+
+def test_with_longer_clips_the_learner_trains_flam_on_consecutive_states_of_its_replay() -> None:
+    worker = EnvWorkerCore(build_config(EnvWorkerConfig, env="multigrid-agents", batch_steps=64))
+    core = DynamicsLearnerCore(build_config(DynamicsLearnerConfig, **FLAM, flam_clip_frames=4), worker.spec)
+    core.ingest(worker.collect())
+    given: list[torch.Tensor] = []
+    update_clips = core.trainer.update_clips
+    core.trainer.update_clips = lambda states: given.append(states) or update_clips(states)
+    for _ in range(4):
+        core.train_step()
+    assert core.trainer.updates == 4 and core.last_stats["phase"] == 1.0
+    assert all(torch.isfinite(torch.tensor(v)) for v in core.last_stats.values())
+    clips = torch.stack(given)
+    assert clips.shape == (4, 4, 4, 8)  # updates, batch, frames, 4 agents' (x, y)
+    steps = (clips[:, :, 1:] - clips[:, :, :-1]).abs()  # each agent moves at most one cell per step
+    assert steps.max() <= 1 and bool((steps.sum(-1) > 0).any())
