@@ -9,10 +9,10 @@ itself: each replayed transition's state and next state (the agents' grid positi
 segments as the optional mask prior. Phases by update count, Algorithm 9's order:
 
 1. ``ae_updates``: the FSQ autoencoder by reconstruction (eq. 8.1), then frozen;
-2. then: FLAM on eq. 8.6, one clip of two frames (s, s') per transition. The replay holds
-   transitions, not episodes, so the chapter's longer clips cannot be cut from it (docs/deviations.md);
-   the factorizer's temporal attention then sees one past frame in training, the whole history in the
-   rollouts that score it.
+2. then: FLAM on eq. 8.6, by default one clip of two frames (s, s') per transition: the factorizer's
+   temporal attention then sees one past frame in training, the whole history in the rollouts that
+   score it (docs/deviations.md). With ``clip_frames`` T > 2 the learner cuts clips of T consecutive
+   states from its replay (:meth:`causal.replay.ReplayBuffer.sample_clips`), as the chapter's clips.
 
 Every ``live_every`` latent-action updates the trainer scores its model on a few fixed unseen videos
 (:func:`latent_action_scores`: 10-step PSNR, DCI, each slot's KL) and returns the figures with that
