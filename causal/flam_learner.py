@@ -92,7 +92,7 @@ class FLAMRunConfig:
     clip_frames: int = doc(2, "frames per training clip: 2, one transition each (the default); more: "
                               "that many consecutive states cut from the replay, as the chapter's clips "
                               "(the factorizer's temporal attention then sees that much history)")
-    batch_size: int = doc(16, "transitions per update (autoencoder: two frames each; FLAM: one clip each)")
+    batch_size: int = doc(16, "clips per update (autoencoder: every frame of them; FLAM: the clips)")
     live_every: int = doc(200, "latent-action updates between live scores on fixed unseen videos (0: none)")
     live_videos: int = doc(16, "unseen videos of the live scores")
     horizon: int = doc(10, "prediction steps of the PSNR (live and final)")

@@ -156,7 +156,8 @@ def displacement_codes(positions: np.ndarray) -> np.ndarray:
     blocked (by the wall or another agent) shows the same offset as one that stays, so these codes
     score below 1 against the actions the agents took. DCI of these codes against the actions is
     the ceiling of the latent actions' (``dci_*_ceiling`` of FLAM's scores)."""
-    delta = np.diff(np.asarray(positions), axis=1).reshape(-1, positions.shape[2], 2)
+    positions = np.asarray(positions)
+    delta = np.diff(positions, axis=1).reshape(-1, positions.shape[2], 2)
     if np.abs(delta).max(initial=0) > 1:
         raise ValueError("positions move more than one cell per step")
     index = (delta[..., 0] + 1) * 3 + (delta[..., 1] + 1)
