@@ -41,9 +41,10 @@ from causal.dci import DCI, dci, position_dci
 from causal.flam import (
     FLAM, MASK_PRIORS, FLAMConfig, LAMTrainer, MonolithicLAM, encode_clips, fit_autoencoder, psnr, rollout,
 )
+from causal.flam_learner import observed_move_dci
 from causal.flam_nets import FSQAutoencoder
 from causal.slots import frames_to_tensor
-from envs.multigrid_agents import NUM_MOVES, MultiGridAgentsEnv, displacement_codes, record_videos
+from envs.multigrid_agents import MultiGridAgentsEnv, record_videos
 
 
 @dataclass(frozen=True)
@@ -355,8 +356,7 @@ def main(args: Args) -> dict[str, dict[str, float]]:
                                   **matched_dci(model, test_features, actions, positions, slots, env.grid_size)})
         print(f"{name}: {json.dumps(results[name])}", flush=True)
     results["random"] = random_codes(actions, positions, config, env.grid_size, args.seed)
-    results["observed moves"] = dci_keys(dci(torch.from_numpy(displacement_codes(positions.numpy())),
-                                             actions.flatten(0, 1), classes=NUM_MOVES))
+    results["observed moves"] = dci_keys(observed_move_dci(positions.numpy(), actions.numpy()))
     print_table(results, args)
     if args.out:
         Path(args.out).write_text(json.dumps({"args": vars(args), "results": results}, indent=2))
