@@ -1,15 +1,26 @@
-"""FLAM's Table 8.4 analogue on the sprite game: behaviour cloning from pseudo-labels (eq. 8.7).
+"""FLAM's Table 8.4 analogue: behaviour cloning from pseudo-labels (eq. 8.7).
 
-    python -m benchmarks.flam_bc --seed 0
+    python -m benchmarks.flam_bc --env multigrid --seed 0 --ae-updates 3000 --updates 12000 --beta-kl 3e-2 --mask-binding 1
+    python -m benchmarks.flam_bc --env sprites --seed 0
 
-The chapter's protocol on a bigfish-like game (envs/sprites.py; the chapter uses Procgen's Bigfish
-and Starpilot with a PPG expert and 1M frames): a demonstration dataset of a scripted expert
-(:func:`envs.sprites.expert_action`, a random move with probability ``--epsilon``), of which a small
-subset keeps its action labels (``--labels``, 1k and 10k by default, of ``--transitions``). FLAM is
-trained on the whole dataset's frames without actions (the FSQ autoencoder first, then eq. 8.6 on
-clips, the annealed mask prior of the exact sprite masks as in the MultiGrid tables); an action
-decoder M_a learns latent actions -> actions on the labelled subset and pseudo-labels every transition;
-a policy on one frame is cloned on the pseudo-labels (eq. 8.7). Rows per label size:
+The chapter's protocol (it uses Procgen's Bigfish and Starpilot with a PPG expert and 1M frames) on
+one of two games of ours (``--env``):
+
+- ``multigrid``: :class:`envs.multigrid_agents.MultiGridGoalEnv`, the player (agent 0) collects goals
+  while ``--num-agents`` - 1 other agents wander at random; the expert
+  (:func:`envs.multigrid_agents.goal_expert_action`) walks to the goal. A move is a whole cell (4
+  pixels), and the frames are FLAM's MultiGrid frames, on which its latent actions read the agents'
+  moves (the Table 8.2 benchmark);
+- ``sprites``: the bigfish-like game of envs/sprites.py with its look-ahead expert
+  (:func:`envs.sprites.expert_action`); the agent moves 1.3 pixels a step, on textured backgrounds.
+
+A demonstration dataset of the expert (a random move with probability ``--epsilon``), of which a
+small subset keeps its action labels (``--labels``, 1k and 10k by default, of ``--transitions``).
+FLAM is trained on the whole dataset's frames without actions (the FSQ autoencoder first, then
+eq. 8.6 on clips, the annealed mask prior of the exact masks as in the MultiGrid tables, a slot
+each for the objects and the background); an action decoder M_a learns latent actions -> actions on
+the labelled subset and pseudo-labels every transition; a policy on one frame is cloned on the
+pseudo-labels (eq. 8.7). Rows per label size:
 
 - ``flam``: BC on FLAM's pseudo-labels of every transition;
 - ``vanilla``: the same policy network and training on the labelled subset alone;
@@ -30,7 +41,9 @@ import json
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -39,7 +52,9 @@ from causal.flam_bc import (ActionDecoder, ClassifierTraining, FramePolicy, eval
                             pseudo_labels)
 from causal.flam_nets import FSQAutoencoder
 from causal.slots import frames_to_tensor
-from envs.sprites import SpritesEnv, expert_action, record_demonstrations
+from envs.demonstrations import record_demonstrations
+from envs.multigrid_agents import MultiGridGoalEnv, goal_expert_action
+from envs.sprites import SpritesEnv, expert_action
 
 EVAL_SEED = 1_000_000
 """Evaluation episodes reset with seeds from here (demonstrations use ``seed * 100_000`` onwards)."""
@@ -47,17 +62,20 @@ EVAL_SEED = 1_000_000
 
 @dataclass(frozen=True)
 class Args:
+    env: str
     seed: int
     transitions: int
     labels: tuple[int, ...]
     epsilon: float
     num_fish: int
+    num_agents: int
     ae_updates: int
     updates: int
     clip: int
     slot_dim: int
     action_dim: int
     beta_kl: float
+    mask_binding: float
     lr: float
     decoder_updates: int
     bc_updates: int
@@ -68,17 +86,22 @@ class Args:
 
 def parse_args(argv: list[str] | None = None) -> Args:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--env", choices=("multigrid", "sprites"), default="sprites",
+                   help="the game (see above): MultiGrid's goal task or the bigfish-like sprite game")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--transitions", type=int, default=30_000, help="demonstration transitions (whole episodes)")
     p.add_argument("--labels", type=int, nargs="+", default=[1000, 10_000], help="labelled subset sizes")
     p.add_argument("--epsilon", type=float, default=0.1, help="the demonstrator's share of random moves")
-    p.add_argument("--num-fish", type=int, default=4)
+    p.add_argument("--num-fish", type=int, default=4, help="sprites: fish")
+    p.add_argument("--num-agents", type=int, default=4, help="multigrid: agents, the player among them")
     p.add_argument("--ae-updates", type=int, default=300, help="FSQ autoencoder updates (eq. 8.1)")
     p.add_argument("--updates", type=int, default=2000, help="FLAM updates (eq. 8.6)")
     p.add_argument("--clip", type=int, default=4, help="frames per FLAM training clip")
     p.add_argument("--slot-dim", type=int, default=32)
     p.add_argument("--action-dim", type=int, default=8, help="d_a per slot")
     p.add_argument("--beta-kl", type=float, default=1e-3)
+    p.add_argument("--mask-binding", type=float, default=0.0,
+                   help="weight of the mask prior's binding term (FLAMConfig.mask_binding; 0: the prior alone)")
     p.add_argument("--lr", type=float, default=2e-3, help="FLAM's learning rate")
     p.add_argument("--decoder-updates", type=int, default=2000, help="updates of M_a and of the IDM baseline")
     p.add_argument("--bc-updates", type=int, default=3000, help="updates of every BC policy")
@@ -95,7 +118,34 @@ def parse_args(argv: list[str] | None = None) -> Args:
                 f"evaluation from {EVAL_SEED:,}")
     if not 0.0 <= parsed.epsilon <= 1.0 or parsed.clip < 2 or min(parsed.eval_episodes, parsed.heldout_transitions) < 1:
         p.error("--epsilon must be in [0, 1], --clip >= 2, --eval-episodes and --heldout-transitions >= 1")
+    if parsed.mask_binding < 0:
+        p.error(f"--mask-binding must be >= 0, got {parsed.mask_binding}")
+    try:
+        game(parsed).make_env()
+    except ValueError as error:
+        p.error(f"--env {parsed.env}: {error}")
     return parsed
+
+
+@dataclass(frozen=True)
+class Game:
+    """What the benchmark needs of a game: a fresh env, the expert's action and the frame with its
+    labels in the env's current state, and the slots FLAM gets (a slot per labelled segment)."""
+
+    make_env: Callable[[], gym.Env]
+    expert: Callable[[gym.Env], int]
+    scene: Callable[[gym.Env], tuple[np.ndarray, np.ndarray]]
+    num_slots: int
+
+
+def game(args: Args) -> Game:
+    """``args.env``'s game: MultiGrid's goal task (the agents, the goal and the background get a slot
+    each) or the sprite game (the agent, the fish and the background)."""
+    if args.env == "multigrid":
+        return Game(lambda: MultiGridGoalEnv(num_agents=args.num_agents), goal_expert_action,
+                    lambda env: env.render_scene(), args.num_agents + 2)
+    return Game(lambda: SpritesEnv(num_fish=args.num_fish), lambda env: expert_action(env._state, env.num_moves),
+                lambda env: env.render_state(env._state), args.num_fish + 2)
 
 
 def token_labels(labels: np.ndarray, stride: int = 4) -> torch.Tensor:
@@ -145,10 +195,10 @@ def labelled_subsets(transitions: int, sizes: tuple[int, ...], seed: int) -> dic
 def main(args: Args) -> dict:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
-    make_env = lambda: SpritesEnv(num_fish=args.num_fish)  # noqa: E731
-    env = make_env()
+    task = game(args)
+    env = task.make_env()
     start = time.time()
-    demos = record_demonstrations(env, args.transitions, seed=args.seed * 100_000, epsilon=args.epsilon)
+    demos = record_demonstrations(env, args.transitions, args.seed * 100_000, args.epsilon, task.expert, task.scene)
     frames = torch.from_numpy(demos["frames"])
     current, actions = torch.from_numpy(demos["current"]), torch.from_numpy(demos["actions"])
     episode_of_frame = np.repeat(np.arange(len(demos["returns"])), np.bincount(demos["episode"]) + 1)
@@ -158,8 +208,8 @@ def main(args: Args) -> dict:
                                         "return_mean": float(demos["returns"].mean()),
                                         "majority_action_share": float(np.bincount(demos["actions"]).max() / len(actions))}}
 
-    config = FLAMConfig(num_slots=args.num_fish + 2, slot_dim=args.slot_dim, action_dim=args.action_dim,
-                        beta_kl=args.beta_kl, lr=args.lr, aggregator="broadcast")
+    config = FLAMConfig(num_slots=task.num_slots, slot_dim=args.slot_dim, action_dim=args.action_dim,
+                        beta_kl=args.beta_kl, lr=args.lr, aggregator="broadcast", mask_binding=args.mask_binding)
     autoencoder = FSQAutoencoder(config.levels)
     start = time.time()
     fit_autoencoder(autoencoder, frames, args.ae_updates, seed=args.seed)
@@ -175,37 +225,36 @@ def main(args: Args) -> dict:
     decoding = ClassifierTraining(updates=args.decoder_updates, batch_size=256)
     cloning = ClassifierTraining(updates=args.bc_updates)
     observations = frames[current]
-    heldout = record_demonstrations(env, args.heldout_transitions, seed=args.seed * 100_000 + 50_000,
-                                    epsilon=args.epsilon)
+    heldout = record_demonstrations(env, args.heldout_transitions, args.seed * 100_000 + 50_000, args.epsilon,
+                                    task.expert, task.scene)
     heldout_frames = torch.from_numpy(heldout["frames"][heldout["current"]])
     heldout_actions = torch.from_numpy(heldout["actions"])
 
     def clone(targets: torch.Tensor, rows: torch.Tensor | None = None) -> dict[str, float]:
         torch.manual_seed(args.seed)
-        policy = FramePolicy(env.num_moves, env.frame_size)
+        policy = FramePolicy(env.action_space.n, env.frame_size)
         inputs = observations if rows is None else observations[rows]
         fit_classifier(policy, inputs, targets if rows is None else targets[rows], cloning, seed=args.seed)
         accuracy = float((predict(policy, heldout_frames) == heldout_actions).float().mean())
-        return {**evaluate_policy(policy, make_env, args.eval_episodes, EVAL_SEED), "heldout_action_accuracy": accuracy}
+        return {**evaluate_policy(policy, task.make_env, args.eval_episodes, EVAL_SEED), "heldout_action_accuracy": accuracy}
 
     for n, rows in labelled_subsets(len(actions), args.labels, args.seed).items():
         row: dict = {"vanilla": clone(actions, rows)}
         for name, inputs in (("flam", alphas), ("idm", pairs)):
             torch.manual_seed(args.seed)
-            labels, accuracy = pseudo_labels(ActionDecoder(inputs.shape[1], env.num_moves), inputs, rows, actions,
+            labels, accuracy = pseudo_labels(ActionDecoder(inputs.shape[1], env.action_space.n), inputs, rows, actions,
                                              decoding, seed=args.seed)
             row[name] = {**clone(labels), "pseudo_label_accuracy": accuracy}
         results[f"labels_{n}"] = row
         print(f"{n} labels: {json.dumps(row)}", flush=True)
     results["all_labels"] = clone(actions)
     rng = np.random.default_rng(args.seed)
-    results["expert"] = evaluate_policy(None, make_env, args.eval_episodes, EVAL_SEED,
-                                        act=lambda e: expert_action(e._state, e.num_moves))
+    results["expert"] = evaluate_policy(None, task.make_env, args.eval_episodes, EVAL_SEED, act=task.expert)
     results["demonstrator"] = evaluate_policy(
-        None, make_env, args.eval_episodes, EVAL_SEED,
-        act=lambda e: rng.integers(e.num_moves) if rng.random() < args.epsilon else expert_action(e._state, e.num_moves))
-    results["random"] = evaluate_policy(None, make_env, args.eval_episodes, EVAL_SEED,
-                                        act=lambda e: rng.integers(e.num_moves))
+        None, task.make_env, args.eval_episodes, EVAL_SEED,
+        act=lambda e: rng.integers(e.action_space.n) if rng.random() < args.epsilon else task.expert(e))
+    results["random"] = evaluate_policy(None, task.make_env, args.eval_episodes, EVAL_SEED,
+                                        act=lambda e: rng.integers(e.action_space.n))
     print_table(results, args)
     if args.out:
         Path(args.out).write_text(json.dumps({"args": vars(args), "results": results}, indent=2))
@@ -213,7 +262,7 @@ def main(args: Args) -> dict:
 
 
 def print_table(results: dict, args: Args) -> None:
-    print(f"\nTable 8.4 analogue (sprite game, seed {args.seed}): mean episodic return over {args.eval_episodes} "
+    print(f"\nTable 8.4 analogue ({args.env}, seed {args.seed}): mean episodic return over {args.eval_episodes} "
           "unseen episodes")
     print(f"{'labels':>8} {'FLAM':>8} {'vanilla':>8} {'IDM':>8}  pseudo-label accuracy FLAM / IDM (the most "
           f"common action's share: {results['demonstrations']['majority_action_share']:.3f})")

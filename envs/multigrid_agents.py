@@ -103,17 +103,23 @@ class MultiGridAgentsEnv(gym.Env[np.ndarray, int]):
                 positions[i] = target
         return positions
 
-    def render_positions(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def render_positions(self, positions: np.ndarray,
+                         goals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Frames uint8 ``[B, H, W, 3]`` and labels uint8 ``[B, H, W]`` (0 background, ``1 + i`` agent
-        ``i``) of a batch of positions (int ``[B, N, 2]``), vectorised over the batch."""
+        ``i``) of a batch of positions (int ``[B, N, 2]``), vectorised over the batch. ``goals`` (int
+        ``[B, 2]``, the goal task's) draws a goal cell under the agents: label ``N + 1``, colour
+        ``PALETTE[N]``."""
         positions = np.asarray(positions, dtype=np.int64)
         cells = np.zeros((len(positions), self.grid_size, self.grid_size), dtype=np.uint8)
+        if goals is not None:
+            goals = np.asarray(goals, dtype=np.int64)
+            cells[np.arange(len(positions)), goals[:, 1], goals[:, 0]] = self.num_agents + 1
         batch = np.repeat(np.arange(len(positions)), self.num_agents)
         agents = np.tile(np.arange(self.num_agents), len(positions))
         flat = positions.reshape(-1, 2)
         cells[batch, flat[:, 1], flat[:, 0]] = agents + 1
         labels = cells.repeat(self.cell_pixels, axis=1).repeat(self.cell_pixels, axis=2)
-        rgb = np.concatenate([np.zeros((1, 3), np.uint8), PALETTE[: self.num_agents]])
+        rgb = np.concatenate([np.zeros((1, 3), np.uint8), PALETTE[: self.num_agents + 1]])
         return rgb[labels], labels
 
     def env_spec(self) -> EnvSpec:
@@ -146,6 +152,103 @@ class CorrelatedMultiGridAgentsEnv(MultiGridAgentsEnv):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**{"correlated": True, **kwargs})
+
+
+class MultiGridGoalEnv(MultiGridAgentsEnv):
+    """Table 8.4's task on MultiGrid (our stand-in for the chapter's Procgen games; docs/deviations.md):
+    the player, agent 0, collects goals while the other agents wander.
+
+    The action (``Discrete(5)``) moves the player; the other agents take uniformly random moves from
+    the env's generator (so a seeded reset fixes the episode given the player's actions), after the
+    player, as in :meth:`transition`. A goal cell (drawn under the agents, colour ``PALETTE[N]``) lies on
+    a cell no agent holds; the player stepping onto it earns reward 1 and a new goal appears on a free
+    cell. Episodes truncate after ``episode_length`` steps; the return is the number of goals
+    collected. Observation: the agents' positions then the goal's (float ``[2N + 2]``); ``info`` as
+    the parent's with ``masks`` ``[N + 2, H, W]`` (channel ``N + 1`` the goal where no agent covers it),
+    ``agent_actions``, ``goals`` (collected so far) and ``success`` (at least one). :func:`goal_expert_action` is the scripted
+    expert. Not a ``--env`` of the registry: the behaviour-cloning benchmark (``benchmarks.flam_bc
+    --env multigrid``) is its one user."""
+
+    def __init__(self, *, num_agents: int = 4, grid_size: int = 8, cell_pixels: int = 4,
+                 episode_length: int = 50, render_mode: str | None = None) -> None:
+        if num_agents >= len(PALETTE):
+            raise ValueError(f"num_agents must be at most {len(PALETTE) - 1} (the goal takes a colour), got {num_agents}")
+        super().__init__(num_agents=num_agents, grid_size=grid_size, cell_pixels=cell_pixels,
+                         episode_length=episode_length, render_mode=render_mode)
+        if num_agents >= grid_size * grid_size:
+            raise ValueError("the goal needs a cell no agent holds: num_agents < grid_size ** 2")
+        self.action_space = gym.spaces.Discrete(NUM_MOVES)
+        self.observation_space = gym.spaces.Box(0.0, grid_size - 1.0, shape=(2 * num_agents + 2,), dtype=np.float32)
+        self.goal = np.zeros(2, dtype=np.int64)
+        self.collected = 0
+
+    def reset(self, *, seed: int | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self.collected = 0
+        self._place_goal()
+        return self._observation(), self._frame_info()
+
+    def step(self, action: int | np.integer) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if not self.action_space.contains(int(action)):
+            raise ValueError(f"action must be in 0..{NUM_MOVES - 1}, got {action}")
+        actions = np.concatenate([[int(action)], self.np_random.integers(NUM_MOVES, size=self.num_agents - 1)])
+        self._positions = self.transition(self._positions, actions)
+        self._t += 1
+        reward = 0.0
+        if (self._positions[0] == self.goal).all():
+            reward, self.collected = 1.0, self.collected + 1
+            self._place_goal()
+        info = {**self._frame_info(), "agent_actions": actions, "goals": self.collected, "success": self.collected > 0}
+        return self._observation(), reward, False, self._t >= self.episode_length, info
+
+    def render(self) -> np.ndarray | None:  # type: ignore[override]
+        return self.render_scene()[0] if self.render_mode == "rgb_array" else None
+
+    def render_scene(self) -> tuple[np.ndarray, np.ndarray]:
+        """The current frame (uint8 ``[H, W, 3]``) and its labels (uint8 ``[H, W]``, goal ``N + 1``)."""
+        frames, labels = self.render_positions(self._positions[None], self.goal[None])
+        return frames[0], labels[0]
+
+    def env_spec(self) -> EnvSpec:
+        raise NotImplementedError("the goal task is the behaviour-cloning benchmark's, not a --env of the services")
+
+    def config(self) -> dict[str, Any]:
+        return {key: value for key, value in super().config().items() if key != "correlated"}
+
+    def _place_goal(self) -> None:
+        held = set(map(tuple, self._positions.tolist()))
+        free = [cell for cell in range(self.grid_size ** 2) if (cell % self.grid_size, cell // self.grid_size) not in held]
+        cell = free[int(self.np_random.integers(len(free)))]
+        self.goal = np.array([cell % self.grid_size, cell // self.grid_size], dtype=np.int64)
+
+    def _observation(self) -> np.ndarray:
+        return np.concatenate([self._positions.reshape(-1), self.goal]).astype(np.float32)
+
+    def _frame_info(self) -> dict[str, np.ndarray]:
+        frame, labels = self.render_scene()
+        return {"frame": frame, "masks": labels[None] == np.arange(self.num_agents + 2)[:, None, None]}
+
+
+def goal_expert_action(env: MultiGridGoalEnv) -> int:
+    """The goal task's scripted expert (Table 8.4's expert; the chapter trains one with PPG): the move
+    toward the goal along the axis with the larger distance (x on ties), or along the other axis when
+    another agent holds that cell; the first of them when both are held (the move is blocked). Never
+    stays. Deterministic; reads the true positions."""
+    player, goal = env._positions[0], env.goal
+    delta = goal - player
+    order = (0, 1) if abs(delta[0]) >= abs(delta[1]) else (1, 0)
+    moves = [_toward(axis, delta[axis]) for axis in order if delta[axis] != 0]
+    others = env._positions[1:]
+    for move in moves:
+        if not (others == player + MOVES[move]).all(axis=1).any():
+            return move
+    return moves[0]
+
+
+def _toward(axis: int, delta: int) -> int:
+    """The move along ``axis`` (0 x, 1 y) in the sign of ``delta``."""
+    return (4 if delta > 0 else 3) if axis == 0 else (2 if delta > 0 else 1)
 
 
 def displacement_codes(positions: np.ndarray) -> np.ndarray:

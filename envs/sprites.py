@@ -39,6 +39,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from envs import demonstrations
 from envs.chemical_pixels import PALETTE
 from proto.messages import EnvSpec
 
@@ -360,35 +361,9 @@ def expert_action(state: np.ndarray, num_moves: int = 5) -> int:
 
 
 def record_demonstrations(env: SpritesEnv, transitions: int, seed: int, epsilon: float = 0.0) -> dict[str, np.ndarray]:
-    """At least ``transitions`` steps of the scripted expert (:func:`expert_action`), taking a uniformly
-    random move instead with probability ``epsilon``; whole episodes, reset with seeds ``seed, seed + 1,
-    ...``, choices from ``numpy.random.default_rng(seed)``.
-
-    ``frames`` uint8 ``[F, H, W, 3]`` and ``labels`` uint8 ``[F, H, W]`` of every frame, episodes one
-    after another (an episode of L steps has L + 1 frames); per transition ``current`` (int64: the
-    index of its first frame; the next frame is ``current + 1``), ``actions`` (int64) and ``episode``
-    (int64); per episode ``returns`` (float64)."""
-    if transitions < 1 or not 0.0 <= epsilon <= 1.0:
-        raise ValueError(f"transitions must be >= 1 and epsilon in [0, 1], got {transitions}, {epsilon}")
-    rng = np.random.default_rng(seed)
-    frames, labels, current, actions, episode_of, returns = [], [], [], [], [], []
-    while len(actions) < transitions:
-        env.reset(seed=seed + len(returns))
-        total, done = 0.0, False
-        while True:
-            frame, label = env.render_state(env._state)
-            frames.append(frame)
-            labels.append(label)
-            if done:
-                break
-            action = int(rng.integers(env.num_moves)) if rng.random() < epsilon else expert_action(env._state, env.num_moves)
-            current.append(len(frames) - 1)
-            actions.append(action)
-            episode_of.append(len(returns))
-            _, reward, terminated, truncated, _ = env.step(action)
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-    return {"frames": np.stack(frames), "labels": np.stack(labels), "current": np.asarray(current, np.int64),
-            "actions": np.asarray(actions, np.int64), "episode": np.asarray(episode_of, np.int64),
-            "returns": np.asarray(returns, np.float64)}
+    """At least ``transitions`` steps of the scripted expert (:func:`expert_action`), a uniformly random
+    move instead with probability ``epsilon``: :func:`envs.demonstrations.record_demonstrations`'s
+    arrays (frames, labels, current, actions, episode, returns)."""
+    return demonstrations.record_demonstrations(
+        env, transitions, seed, epsilon, expert=lambda e: expert_action(e._state, e.num_moves),
+        scene=lambda e: e.render_state(e._state))

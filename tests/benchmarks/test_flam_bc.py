@@ -14,9 +14,11 @@ from benchmarks.flam_bc import clip_starts, labelled_subsets, main, parse_args, 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def test_flam_bc_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("game", [["--env", "sprites", "--num-fish", "2"],
+                                  ["--env", "multigrid", "--num-agents", "2", "--mask-binding", "1"]])
+def test_flam_bc_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str], game: list[str]) -> None:
     out = tmp_path / "bc.json"
-    main(parse_args(["--transitions", "120", "--labels", "10", "60", "--num-fish", "2", "--ae-updates", "1",
+    main(parse_args([*game, "--transitions", "120", "--labels", "10", "60", "--ae-updates", "1",
                      "--updates", "2", "--slot-dim", "16", "--decoder-updates", "3", "--bc-updates", "3",
                      "--eval-episodes", "1", "--heldout-transitions", "20", "--out", str(out)]))
     results = json.loads(out.read_text())["results"]
@@ -30,7 +32,7 @@ def test_flam_bc_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
         for name in ("flam", "idm", "vanilla"):
             assert 0.0 <= results[f"labels_{n}"][name]["heldout_action_accuracy"] <= 1.0
     assert results["expert"]["return_mean"] >= 0.0 and results["random"]["episodes"] == 1
-    assert "Table 8.4 analogue" in capsys.readouterr().out
+    assert f"Table 8.4 analogue ({game[1]}" in capsys.readouterr().out
 
 
 def test_token_labels_take_the_object_with_most_pixels_over_the_background() -> None:
@@ -57,3 +59,6 @@ def test_bad_arguments_are_refused_before_anything_runs(capsys: pytest.CaptureFi
     with pytest.raises(SystemExit):
         parse_args(["--seed", "10"])
     assert "--seed must be in 0..9" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse_args(["--env", "multigrid", "--num-agents", "10"])
+    assert "--env multigrid: num_agents must be at most 9" in capsys.readouterr().err

@@ -13,8 +13,9 @@ from gymnasium.utils.env_checker import check_env
 from envs import make_env
 from envs.chemical_pixels import PALETTE
 from causal.dci import dci
-from envs.multigrid_agents import (MOVES, NUM_MOVES, CorrelatedMultiGridAgentsEnv, MultiGridAgentsEnv,
-                                  displacement_codes, record_videos)
+from envs.demonstrations import record_demonstrations
+from envs.multigrid_agents import (MOVES, NUM_MOVES, CorrelatedMultiGridAgentsEnv, MultiGridAgentsEnv, MultiGridGoalEnv,
+                                  displacement_codes, goal_expert_action, record_videos)
 
 
 def test_seeded_episodes_repeat_frame_for_frame() -> None:
@@ -130,3 +131,61 @@ def test_the_observed_moves_read_the_actions_well_but_not_perfectly() -> None:
                  torch.from_numpy(videos["actions"]).reshape(-1, 4), classes=NUM_MOVES)
     assert 0.6 < scores.informativeness < 0.97
     assert scores.importance.argmax(0).tolist() == [0, 1, 2, 3]  # each agent's action is read from its own move
+
+
+def test_the_goal_task_pays_for_reaching_the_goal_and_moves_it_to_a_free_cell() -> None:
+    env = MultiGridGoalEnv(num_agents=3, grid_size=5)
+    obs, info = env.reset(seed=4)
+    assert obs.shape == (8,) and info["masks"].shape == (5, 20, 20)
+    assert info["masks"].sum(0).max() == 1  # the masks partition the frame
+    assert not (env._positions == env.goal).all(axis=1).any()  # the goal starts on a free cell
+    assert (info["frame"][info["masks"][4]] == PALETTE[3]).all() and info["masks"][4].sum() == 16
+    # put the player next to the goal, the others out of the way, and step onto it
+    env._positions = np.array([[0, 0], [4, 4], [4, 3]])
+    env.goal = np.array([1, 0])
+    _, reward, terminated, truncated, info = env.step(4)
+    assert reward == 1.0 and info["goals"] == 1 and info["success"] and not terminated and not truncated
+    assert info["agent_actions"][0] == 4 and (env._positions[0] == (1, 0)).all()
+    assert not (env._positions == env.goal).all(axis=1).any()
+    _, reward, *_ = env.step(0)
+    assert reward == 0.0
+    with pytest.raises(ValueError, match="action"):
+        env.step(5)
+    with pytest.raises(ValueError, match="goal takes a colour"):
+        MultiGridGoalEnv(num_agents=len(PALETTE))
+
+
+def test_the_goal_tasks_episodes_repeat_under_a_seed_whatever_the_others_do() -> None:
+    def episode(seed: int) -> list[np.ndarray]:
+        env = MultiGridGoalEnv()
+        frames = [env.reset(seed=seed)[1]["frame"]]
+        for t in range(20):
+            frames.append(env.step(t % NUM_MOVES)[4]["frame"])
+        return frames
+    first, again, other = episode(3), episode(3), episode(4)
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+    assert not all(np.array_equal(a, b) for a, b in zip(first, other))
+
+
+def test_the_goal_expert_walks_to_the_goal_around_agents() -> None:
+    env = MultiGridGoalEnv(num_agents=2, grid_size=6)
+    env.reset(seed=0)
+    env._positions, env.goal = np.array([[1, 1], [5, 5]]), np.array([4, 2])
+    assert goal_expert_action(env) == 4  # x is the longer way: right
+    env._positions = np.array([[1, 1], [2, 1]])  # an agent holds the cell to the right: go down
+    assert goal_expert_action(env) == 2
+    env.goal = np.array([1, 0])
+    env._positions = np.array([[1, 1], [1, 0]])  # the only way is held: the move is tried (blocked)
+    assert goal_expert_action(env) == 1
+    # the expert collects many goals, a random policy few
+    expert = record_demonstrations(MultiGridGoalEnv(), 500, 0, 0.0, goal_expert_action, lambda e: e.render_scene())
+    random = record_demonstrations(MultiGridGoalEnv(), 500, 0, 1.0, goal_expert_action, lambda e: e.render_scene())
+    assert expert["returns"].mean() > 6.0 and random["returns"].mean() < 1.5
+    assert 0 not in expert["actions"] and expert["labels"].max() == 5
+    assert len(expert["frames"]) == len(expert["actions"]) + len(expert["returns"])
+
+
+def test_the_goal_task_passes_gymnasiums_checker() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        check_env(MultiGridGoalEnv(), skip_render_check=True)
