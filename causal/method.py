@@ -55,6 +55,26 @@ class DynamicsTrainer(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
+@runtime_checkable
+class ClipTrainer(Protocol):
+    """Optional part of a :class:`DynamicsTrainer` that learns from clips of consecutive states (FLAM):
+    with ``clip_frames`` above 2 the learner calls ``update_clips`` instead of ``update``."""
+
+    clip_frames: int
+    """States per clip (2: the learner keeps calling ``update`` on transitions)."""
+
+    def update_clips(self, states: torch.Tensor) -> dict[str, float]:
+        """One training step on ``[batch, clip_frames, state_dim]`` consecutive states."""
+
+
+@runtime_checkable
+class PrioritisedTrainer(Protocol):
+    """Optional part of a :class:`DynamicsTrainer` of a ``prioritised`` method (ELDEN): after each
+    ``update`` the new priorities of the batch's rows, ``None`` to leave them."""
+
+    last_priorities: np.ndarray | None
+
+
 class GlobalGraphEstimator(Protocol):
     """Per-edge scores of the whole environment's graph from a model and held-out transitions."""
 

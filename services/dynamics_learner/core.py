@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from causal.factored import FactorLayout
-from causal.method import export_tensors
+from causal.method import ClipTrainer, PrioritisedTrainer, export_tensors
 from causal.methods import get_method, method_config
 from causal.replay import PrioritisedReplay, ReplayBuffer, heldout_mask
 from proto.fits import check_fits
@@ -73,13 +73,12 @@ class DynamicsLearnerCore:
 
     def train_step(self) -> dict[str, float]:
         """One update on a replay batch. For a ``prioritised`` method the batch is drawn by priority
-        and the rows get the priorities the trainer reports for them (its ``last_priorities``,
-        ``None`` to leave them: every row then keeps its first priority, and sampling is uniform).
-        A trainer whose ``clip_frames`` is above 2 is given clips of that many consecutive states
-        instead (``update_clips``, :meth:`causal.replay.ReplayBuffer.sample_clips`; FLAM)."""
-        clip_frames = getattr(self.trainer, "clip_frames", 0)
-        if clip_frames > 2:
-            clips = self.replay.sample_clips(self.trainer.batch_size, clip_frames)
+        and the rows get the priorities a :class:`~causal.method.PrioritisedTrainer` reports for them
+        (``None`` to leave them: every row then keeps its first priority, and sampling is uniform).
+        A :class:`~causal.method.ClipTrainer` whose ``clip_frames`` is above 2 is given clips of that
+        many consecutive states instead (:meth:`causal.replay.ReplayBuffer.sample_clips`; FLAM)."""
+        if isinstance(self.trainer, ClipTrainer) and self.trainer.clip_frames > 2:
+            clips = self.replay.sample_clips(self.trainer.batch_size, self.trainer.clip_frames)
             stats = self.trainer.update_clips(*self._on_device((clips,)))
         elif not isinstance(self.replay, PrioritisedReplay):
             stats = self.trainer.update(*self._on_device(self.replay.sample(self.trainer.batch_size,
@@ -87,9 +86,8 @@ class DynamicsLearnerCore:
         else:
             index, batch = self.replay.sample_indexed(self.trainer.batch_size, self.method.learns_reward)
             stats = self.trainer.update(*self._on_device(batch))
-            priorities = getattr(self.trainer, "last_priorities", None)
-            if priorities is not None:
-                self.replay.update_priorities(index, priorities)
+            if isinstance(self.trainer, PrioritisedTrainer) and self.trainer.last_priorities is not None:
+                self.replay.update_priorities(index, self.trainer.last_priorities)
         self.last_stats.update(stats)
         return stats
 
