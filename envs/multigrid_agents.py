@@ -211,7 +211,15 @@ class MultiGridGoalEnv(MultiGridAgentsEnv):
         return frames[0], labels[0]
 
     def env_spec(self) -> EnvSpec:
-        raise NotImplementedError("the goal task is the behaviour-cloning benchmark's, not a --env of the services")
+        """The agents' positions then the goal's as categorical factors; the player's move as the action."""
+        n = 2 * self.num_agents + 2
+        objects = [f"agent{i}" for i in range(self.num_agents)] + ["goal"]
+        return EnvSpec(
+            env_id="multigrid-goal", factor_names=tuple(f"{o}.{axis}" for o in objects for axis in "xy"),
+            factor_kinds=("categorical",) * n, factor_sizes=(self.grid_size,) * n,
+            factor_objects=tuple(o for o in objects for _ in "xy"), factor_locs=(0.0,) * n,
+            factor_scales=(1.0,) * n, action_kind="categorical", action_size=NUM_MOVES,
+            episode_length=self.episode_length, config_json=json.dumps(self.config()))
 
     def config(self) -> dict[str, Any]:
         return {key: value for key, value in super().config().items() if key != "correlated"}

@@ -153,6 +153,9 @@ def test_the_goal_task_pays_for_reaching_the_goal_and_moves_it_to_a_free_cell() 
         env.step(5)
     with pytest.raises(ValueError, match="goal takes a colour"):
         MultiGridGoalEnv(num_agents=len(PALETTE))
+    spec = MultiGridGoalEnv(num_agents=3, grid_size=5).env_spec()
+    assert spec.factor_names[-2:] == ("goal.x", "goal.y") and len(spec.factor_names) == 8
+    assert spec.action_size == NUM_MOVES and MultiGridGoalEnv(**json.loads(spec.config_json)).grid_size == 5
 
 
 def test_the_goal_tasks_episodes_repeat_under_a_seed_whatever_the_others_do() -> None:
