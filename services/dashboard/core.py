@@ -16,6 +16,7 @@ from services.dashboard.cells import cause_names, classify, count_outcomes, shor
 from services.dashboard.coverage import run_coverage
 from services.dashboard.local_graph import LocalPoint, local_graph_document
 from services.dashboard.reward_graph import reward_document
+from services.runtime.live_scores import live_row
 
 CURVE_METRICS = ("f1", "accuracy", "precision", "recall", "roc_auc", "best_threshold_f1", "identifiable_f1",
                  "with_self_best_threshold_f1", "with_self_accuracy", "reward_f1", "abstraction_accuracy")
@@ -53,7 +54,7 @@ class CurvePoint:
         return cls(time=time, env_steps=report.env_steps, updates=report.updates, **scores)
 
 
-Point = TypeVar("Point", CurvePoint, LocalPoint)
+Point = TypeVar("Point", CurvePoint, LocalPoint, dict)
 
 
 @dataclass
@@ -77,6 +78,8 @@ class RunState:
     local: LocalGraphReport | None = None
     local_received_at: float = 0.0
     local_curve: list[LocalPoint] = field(default_factory=list)
+    live_curve: list[dict[str, float]] = field(default_factory=list)
+    """The dynamics-learner's live scores (FLAM's PSNR, DCI, per-slot KL) each time they change."""
 
     @property
     def updated_at(self) -> float:
@@ -122,13 +125,19 @@ class DashboardState:
         return (curve[::2] if len(curve) >= self.history_points else curve) + [point]
 
     def add_stats(self, run: str, stats: ServiceStats, now: float) -> None:
-        """Remember the newest beat of one service instance."""
+        """Remember the newest beat of one service instance; a dynamics-learner's new live scores
+        extend the run's live curve (``time`` is the beat's timestamp)."""
         with self._lock:
-            services = self._run(run, now).services
+            state = self._run(run, now)
+            services = state.services
             key = (stats.service, stats.instance)
             if key not in services and len(services) >= self.max_services:
                 del services[min(services, key=lambda k: services[k].last_seen)]
             services[key] = ServiceBeat(stats, now)
+            if stats.service == "dynamics-learner":
+                row = live_row(stats.values, state.live_curve[-1] if state.live_curve else None, stats.timestamp)
+                if row is not None:
+                    state.live_curve = self._extended(state.live_curve, row)
 
     def run_ids(self) -> list[str]:
         with self._lock:
@@ -151,7 +160,7 @@ class DashboardState:
             services = self._services(state, now)
             return {"run": run, "server_time": now, "graph": graph, "history": [asdict(p) for p in state.curve],
                     "local_graph": self._local_document(state), "services": services,
-                    "induced_coverage": run_coverage(services)}
+                    "induced_coverage": run_coverage(services), "live_history": list(state.live_curve)}
 
     def _local_document(self, state: RunState) -> dict | None:
         if state.local is None:
@@ -163,6 +172,12 @@ class DashboardState:
         with self._lock:
             state = self._runs.get(run)
             return None if state is None else self._services(state, now)
+
+    def live_history(self, run: str) -> list[dict[str, float]]:
+        """The run's live-score curve (empty for an unknown run or one without live scores)."""
+        with self._lock:
+            state = self._runs.get(run)
+            return [] if state is None else list(state.live_curve)
 
     def _services(self, state: RunState, now: float) -> list[dict]:
         return [{"service": s, "instance": i, "values": beat.stats.values, "timestamp": beat.stats.timestamp,

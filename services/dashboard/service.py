@@ -73,7 +73,8 @@ class _Pusher:
             if self.hub.watching(run):
                 services = self.state.services(run, now)
                 self.hub.push(run, "services", to_json({"run": run, "server_time": now, "services": services,
-                                                        "induced_coverage": run_coverage(services)}))
+                                                        "induced_coverage": run_coverage(services),
+                                                        "live_history": self.state.live_history(run)}))
         self._stats_runs.clear()
         self._last_services = now
 

@@ -7,7 +7,8 @@
     GET /static/<file>      its script, style sheet and icon (preloaded; nothing else on disk is served)
     GET /api/runs           {"server_time", "runs": [...]}
     GET /api/runs/<run>     the run's snapshot (core.DashboardState.snapshot: "graph", "history",
-                            "local_graph", "services"), 404 for an unknown run
+                            "local_graph", "services", "induced_coverage", "live_history"), 404 for an
+                            unknown run
     GET /events?run=<run>   text/event-stream: "runs" and "snapshot" at once, then on every new report
                             (graph or local graph), "services" at most every few seconds, a comment
                             every heartbeat_s; 503 when full

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import matplotlib
 
@@ -218,18 +218,6 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path) -> None:
         keys += ["identifiable_f1", "identifiable_best_threshold_f1"]
     keys += ["with_self_best_threshold_f1"]  # the figure Table 3.1 reports
     plot_scores(history, keys, "score", path)
-
-
-def live_row(values: Mapping[str, float], last: Mapping[str, float] | None, elapsed: float) -> dict[str, float] | None:
-    """A row of the learner's live-score history from one of its beats: the ``live_*`` values (a
-    trainer's scores on fixed unseen data, e.g. FLAM's PSNR, DCI and per-slot KL; the prefix dropped)
-    with the beat's ``time``, ``updates`` and ``env_steps``; None when the beat carries none or the same
-    ones as ``last`` (a beat repeats the newest scores until the trainer computes the next)."""
-    live = {key.removeprefix("live_"): float(v) for key, v in values.items() if key.startswith("live_")}
-    if not live or (last is not None and all(last.get(key) == v for key, v in live.items())):
-        return None
-    return {"time": round(elapsed, 3), "updates": float(values.get("updates", 0.0)),
-            "env_steps": float(values.get("env_steps", 0.0)), **live}
 
 
 def plot_live_scores(history: list[dict[str, float]], path: Path) -> None:

@@ -37,7 +37,7 @@ from services.supervisor.analysis import RunRecord, analyse, git_revision
 from services.supervisor.config import RunConfig
 from services.supervisor.processes import FatalServiceError, ManagedProcess, leftovers, stop_all
 from services.supervisor.progress import Progress
-from services.supervisor.report import live_row
+from services.runtime.live_scores import live_row
 from services.supervisor.report_skills import skill_facts
 from services.supervisor.report_slots import label_facts, slot_facts
 from services.supervisor.stop_rules import StopRules

@@ -399,6 +399,19 @@ def test_a_flam_run_shows_its_per_slot_latent_actions(stack) -> None:
         assert rows == [["0", "12.0", "50%"], ["1", "3.00", "12.5%"], ["2", "6.00", "25%"], ["3", "0.500", "2.1%"],
                         ["4", "24.0", "100%"]]
         assert not visible(browser, "latent-labels")  # no labelling factor-extractor in this run yet
+        # the live scores each time they change: a second beat with new scores adds a point to both curves
+        later = {**live, "live_psnr": 41.25, "live_dci_d": 0.5}
+        publisher.publish(topics.stats("flam-demo", "dynamics-learner", "0"),
+                          encode(make_stats("dynamics-learner", "0", updates=1_434.0, env_steps=48_000.0, **later)))
+        browser.wait_for("document.getElementById('latent-psnr').textContent === '41.25'", 10, "the second scores")
+        curves = browser.evaluate("['latent-psnr-chart', 'latent-dci-chart'].map(id => [...document.querySelectorAll("
+                                  "`#${id} path.series`)].map(p => [p.getAttribute('class'), p.getAttribute('d').split('L').length]))")
+        assert curves == [[["series series-psnr", 2]],
+                          [["series series-dci_d", 2], ["series series-dci_c dashed", 2], ["series series-dci_i dotted", 2]]]
+        ticks = browser.evaluate("[...document.querySelectorAll('#latent-psnr-chart .axis text')].map(t => t.textContent)")
+        assert "25" in ticks and "40" in ticks and "env steps" in ticks  # the dB axis spans the scores
+        history = fetch_json(f"{base}/api/runs/flam-demo")["live_history"]
+        assert [(row["updates"], row["psnr"]) for row in history] == [(1_234.0, 24.5), (1_434.0, 41.25)]
         labels = make_stats("factor-extractor", "0", labelled_steps=5_120.0, unlabelled_steps=256.0,
                             labels_weights_version=7.0, **{f"stream_slot{k}_kl": kl for k, kl in enumerate((0.1, 30.0, 29.5))})
         publisher.publish(topics.stats("flam-demo", "factor-extractor", "0"), encode(labels))

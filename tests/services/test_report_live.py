@@ -9,7 +9,8 @@ from proto.messages import ServiceStats
 from services.bus.router import free_tcp_port
 from services.runtime.config import build_config
 from services.supervisor.config import RunConfig
-from services.supervisor.report import live_row, plot_live_scores
+from services.runtime.live_scores import live_row
+from services.supervisor.report import plot_live_scores
 from services.supervisor.supervisor import Supervisor
 
 

@@ -2,7 +2,7 @@
 // /events?run=<run> delivers "runs", "snapshot" and "services" events; everything is drawn in SVG.
 // A snapshot carries the global graph, local graphs, or both: the page shows what the run has.
 
-import { renderChart, renderChartLegend } from './chart.js';
+import { LATENT_DCI_SERIES, LATENT_PSNR_SERIES, renderChart, renderChartLegend } from './chart.js';
 import { $, debounce, fmt, html } from './dom.js';
 import { GraphViews } from './heatmap.js';
 import { LocalPanel } from './local.js';
@@ -14,7 +14,7 @@ const STATUS_TEXT = { live: 'live', connecting: 'connecting…', reconnecting: '
 const params = new URLSearchParams(window.location.search);
 const view = {
   run: params.get('run'), userPicked: params.has('run'), source: null, retry: null,
-  graph: null, local: null, history: [], services: [], servicesAt: Date.now(), clockOffsetMs: 0,
+  graph: null, local: null, history: [], liveHistory: [], services: [], servicesAt: Date.now(), clockOffsetMs: 0,
 };
 const graphViews = new GraphViews($('legend-learned'));
 const localPanel = new LocalPanel();
@@ -154,6 +154,16 @@ function renderLatentActions() {
   const head = [html('th', { text: 'slot' }), html('th', { text: 'KL (nats)' }), html('th', { text: '' })];
   if (labeller) head.push(html('th', { text: "KL, workers' stream (newest labels)" }));
   $('latent-slots').replaceChildren(html('tr', {}, head), ...rows);
+  drawLatentCharts();
+}
+
+// The live scores each time the learner computed them (the server keeps the run's curve).
+function drawLatentCharts() {
+  if ($('latent-panel').hidden) return;
+  renderChart($('latent-psnr-chart'), view.liveHistory, LATENT_PSNR_SERIES, { unit: 'dB' });
+  renderChartLegend($('latent-psnr-legend'), view.liveHistory, LATENT_PSNR_SERIES);
+  renderChart($('latent-dci-chart'), view.liveHistory, LATENT_DCI_SERIES);
+  renderChartLegend($('latent-dci-legend'), view.liveHistory, LATENT_DCI_SERIES);
 }
 
 // Local graphs but no global graph (a method without one): hide the global scores and heat maps.
@@ -243,6 +253,7 @@ function onSnapshot(snapshot) {
 function onServices(message) {
   if (message.run !== view.run) return;
   view.services = message.services;
+  view.liveHistory = message.live_history || [];
   view.servicesAt = Date.now();
   renderServices();
   renderCoverage(message.induced_coverage);
@@ -287,6 +298,7 @@ function selectRun(run, byUser) {
   view.run = run;
   view.userPicked = view.userPicked || byUser;
   view.history = [];
+  view.liveHistory = [];
   view.services = [];
   view.local = null;
   localPanel.render(null);
@@ -301,6 +313,7 @@ $('run').addEventListener('change', (e) => selectRun(e.target.value, true));
 window.addEventListener('resize', debounce(() => {
   if (view.graph) graphViews.render(view.graph);
   drawChart();
+  drawLatentCharts();
   localPanel.resize();
 }, 150));
 renderWaiting();

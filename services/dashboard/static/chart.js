@@ -1,5 +1,7 @@
 // Learning curves: scores against env steps, one SVG line per score, values on hover. SERIES are the
-// global graph's; a caller passes its own (the local-graph panel's LOCAL_SERIES).
+// global graph's; a caller passes its own (the local-graph panel's LOCAL_SERIES, the latent-action
+// panel's LATENT_DCI_SERIES and LATENT_PSNR_SERIES). Scores lie in [0, 1]; `{ unit }` scales the
+// y axis to the data instead (PSNR in dB).
 
 import { fmt, html, svg, tooltip } from './dom.js';
 
@@ -22,6 +24,14 @@ export const LOCAL_SERIES = [
   { key: 'positive_rate', label: 'positive rate (chance PR AUC)', dotted: true, optional: 'present' },
 ];
 
+export const LATENT_DCI_SERIES = [
+  { key: 'dci_d', label: 'DCI D' },
+  { key: 'dci_c', label: 'DCI C', dashed: true },
+  { key: 'dci_i', label: 'DCI I', dotted: true },
+];
+
+export const LATENT_PSNR_SERIES = [{ key: 'psnr', label: 'prediction PSNR (dB)' }];
+
 // Optional series are drawn only where they tell something new: identifiable F1 where it differs
 // from F1 (environments with constant factors, i.e. manipulation); the Table 3.1-scored F1 (every
 // entry, self-edges counted found) where the evaluator reports it (older runs do not); the reward
@@ -42,7 +52,24 @@ function niceTicks(lo, hi, count) {
   return ticks;
 }
 
-export function renderChart(chart, points, all = SERIES) {
+// The y range: [0, 1] for scores; with a unit, nice bounds around the shown series' values.
+function yDomain(points, series, unit) {
+  if (!unit) return { lo: 0, hi: 1, ticks: [0, 0.25, 0.5, 0.75, 1], label: (v) => v.toFixed(2), value: fmt.ratio };
+  const values = points.flatMap((p) => series.map(({ key }) => p[key])).filter(Number.isFinite);
+  let lo = values.length ? Math.min(...values) : 0;
+  let hi = values.length ? Math.max(...values) : 1;
+  if (hi - lo < 1e-9) { lo -= 1; hi += 1; }
+  const nice = niceTicks(lo, hi, 4);
+  const step = nice.length > 1 ? nice[1] - nice[0] : hi - lo;
+  lo = Math.floor(lo / step) * step;
+  hi = Math.ceil(hi / step) * step;
+  const ticks = [];
+  for (let v = lo; v <= hi + step * 1e-9; v += step) ticks.push(v);
+  const digits = step >= 1 ? 0 : 1;
+  return { lo, hi, ticks, label: (v) => v.toFixed(digits), value: (v) => (Number.isFinite(v) ? `${v.toFixed(2)} ${unit}` : '–') };
+}
+
+export function renderChart(chart, points, all = SERIES, { unit = '' } = {}) {
   chart.replaceChildren();
   const width = chart.parentElement.clientWidth;
   const height = 250;
@@ -52,11 +79,13 @@ export function renderChart(chart, points, all = SERIES) {
   const X0 = 0;
   const X1 = Math.max(1, ...points.map((p) => p.env_steps));
   const x = (v) => m.l + ((v - X0) / (X1 - X0)) * (width - m.l - m.r);
-  const y = (v) => m.t + (1 - v) * (height - m.t - m.b);
+  const series = activeSeries(points, all);
+  const domain = yDomain(points, series, unit);
+  const y = (v) => m.t + (1 - (v - domain.lo) / (domain.hi - domain.lo)) * (height - m.t - m.b);
   const axis = svg('g', { class: 'axis' }, chart);
-  [0, 0.25, 0.5, 0.75, 1].forEach((v) => {
+  domain.ticks.forEach((v) => {
     svg('line', { class: 'grid', x1: m.l, x2: width - m.r, y1: y(v), y2: y(v) }, axis);
-    svg('text', { x: m.l - 8, y: y(v), 'text-anchor': 'end', 'dominant-baseline': 'central' }, axis, v.toFixed(2));
+    svg('text', { x: m.l - 8, y: y(v), 'text-anchor': 'end', 'dominant-baseline': 'central' }, axis, domain.label(v));
   });
   niceTicks(X0, X1, Math.max(2, Math.floor(width / 110))).forEach((v) => {
     svg('text', { x: x(v), y: height - m.b + 16, 'text-anchor': 'middle' }, axis, fmt.compact(v));
@@ -66,7 +95,6 @@ export function renderChart(chart, points, all = SERIES) {
     svg('text', { class: 'empty-note', x: width / 2, y: height / 2, 'text-anchor': 'middle' }, chart, 'no scores yet');
     return;
   }
-  const series = activeSeries(points, all);
   series.forEach((line) => {
     const { key } = line;
     let d = '';
@@ -93,7 +121,7 @@ export function renderChart(chart, points, all = SERIES) {
     crosshair.setAttribute('x2', x(p.env_steps));
     crosshair.setAttribute('visibility', 'visible');
     tooltip.show(`${fmt.int(p.env_steps)} env steps`, [
-      ...series.map(({ key, label }) => [label, fmt.ratio(p[key])]),
+      ...series.map(({ key, label }) => [label, domain.value(p[key])]),
       ['updates', fmt.int(p.updates)],
     ], null, e.clientX, e.clientY);
   });
