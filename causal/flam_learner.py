@@ -59,8 +59,8 @@ class FLAMRunConfig:
     the actions from DCI D/C 0.05/0.05 to 0.76/0.73 (0.42/0.34 in a second run) and its slots against the
     positions from 0.50/0.46 to 0.83/0.81; 4 of 5 seeds bind (results.md, "A run with the binding term").
     Since the twenty-sixth session (2026-12-07) also beta_KL 3e-2 on clips of 4 frames with the learning
-    rate decayed over 20,000 updates: on seeds 0, 1 and 3 the latent actions read the actions at D/C
-    0.50-0.55/0.45-0.51 (their ceiling, the observed moves, 0.80) where beta_KL 1e-3 gave 0.18/0.17 on
+    rate decayed over 20,000 updates: on seeds 0-3 the latent actions read the actions at D/C
+    0.50-0.62/0.45-0.58 (their ceiling, the observed moves, 0.80) where beta_KL 1e-3 gave 0.18/0.17 on
     seed 3, at 57-59 dB of prediction; at 3e-2 on clips of 2 frames runs collapse (results.md, "beta_KL
     with the binding term"). ``mask_prior`` none needs ``mask_binding`` 0. A run directory from before
     resumes only with the old values given (``--flam-beta-kl 1e-3``; before the binding term also
