@@ -31,6 +31,9 @@ class DynamicsLearnerCore:
         self.device = resolve_device(cfg.device, self.method.devices)
         if "cuda" in self.method.devices:  # a method that runs on the CPU only has no ``to``
             self.trainer.to(self.device)
+        self.clip_frames = self.trainer.clip_frames if isinstance(self.trainer, ClipTrainer) else 2
+        """States per training clip: above 2, ``update_clips`` on clips cut from the replay (FLAM)."""
+        self.reports_priorities = isinstance(self.trainer, PrioritisedTrainer)
         replay = PrioritisedReplay if self.method.prioritised else ReplayBuffer
         self.replay = replay(cfg.replay_capacity, spec.state_dim, spec.action_dim, seed=cfg.seed)
         self.version = 0
@@ -77,8 +80,8 @@ class DynamicsLearnerCore:
         (``None`` to leave them: every row then keeps its first priority, and sampling is uniform).
         A :class:`~causal.method.ClipTrainer` whose ``clip_frames`` is above 2 is given clips of that
         many consecutive states instead (:meth:`causal.replay.ReplayBuffer.sample_clips`; FLAM)."""
-        if isinstance(self.trainer, ClipTrainer) and self.trainer.clip_frames > 2:
-            clips = self.replay.sample_clips(self.trainer.batch_size, self.trainer.clip_frames)
+        if self.clip_frames > 2:
+            clips = self.replay.sample_clips(self.trainer.batch_size, self.clip_frames)
             stats = self.trainer.update_clips(*self._on_device((clips,)))
         elif not isinstance(self.replay, PrioritisedReplay):
             stats = self.trainer.update(*self._on_device(self.replay.sample(self.trainer.batch_size,
@@ -86,7 +89,7 @@ class DynamicsLearnerCore:
         else:
             index, batch = self.replay.sample_indexed(self.trainer.batch_size, self.method.learns_reward)
             stats = self.trainer.update(*self._on_device(batch))
-            if isinstance(self.trainer, PrioritisedTrainer) and self.trainer.last_priorities is not None:
+            if self.reports_priorities and self.trainer.last_priorities is not None:
                 self.replay.update_priorities(index, self.trainer.last_priorities)
         self.last_stats.update(stats)
         return stats
