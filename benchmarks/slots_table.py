@@ -17,7 +17,9 @@ to) says whether slot ``1 + j`` is object ``j`` in every frame, which a slot-wis
 machine gives the same numbers, only later; one torch thread.
 
 ``--env chemical-pixels`` (default): states drawn as ``reset`` draws them (a fresh layout each), with
-``--num-objects`` objects. ``--env sprites``: the bigfish-like sprite game (``envs.sprites``), frames
+``--num-objects`` objects; ``--env chemical-pixels-two-tone``: the same with each shape's lower half
+drawn in one grey shared by all objects (``ChemicalPixelsEnv.two_tone``: objects of two parts, where
+unsupervised slots may group the parts by colour across objects). ``--env sprites``: the bigfish-like sprite game (``envs.sprites``), frames
 of uniformly random play (:func:`envs.sprites.record_frames`), ``--num-objects`` objects = the agent
 and ``num_objects - 1`` fish; overlapping multi-coloured sprites on a textured background, the
 harder scene the Chemical rows lack.
@@ -43,7 +45,7 @@ from envs.chemical_pixels import ChemicalPixelsEnv
 from envs.sprites import SpritesEnv, record_frames
 
 VARIANTS = ("annealed", "none", "always")
-ENVS = ("chemical-pixels", "sprites")
+ENVS = ("chemical-pixels", "chemical-pixels-two-tone", "sprites")
 """The rendered environments ``--env`` takes."""
 EVAL_SEED_OFFSET = 10_000
 """Evaluation frames come from env seed ``seed + EVAL_SEED_OFFSET``: unseen in training."""
@@ -86,8 +88,9 @@ def frames_of(env: ChemicalPixelsEnv, seed: int, count: int) -> tuple[torch.Tens
 
 def frame_source(env_name: str, budget: Budget) -> Callable[[int, int], tuple[torch.Tensor, torch.Tensor]]:
     """``(seed, count) -> (frames, labels)`` of environment ``env_name`` at ``budget``'s sizes."""
-    if env_name == "chemical-pixels":
-        env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size)
+    if env_name in ("chemical-pixels", "chemical-pixels-two-tone"):
+        env = ChemicalPixelsEnv(graph="chain", num_objects=budget.num_objects, frame_size=budget.frame_size,
+                                two_tone=env_name.endswith("two-tone"))
         return lambda seed, count: frames_of(env, seed, count)
     if env_name == "sprites":
         if budget.num_objects < 2:

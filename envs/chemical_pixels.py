@@ -36,6 +36,9 @@ SHAPES = ("square", "circle", "diamond", "triangle", "plus")
 FILL = 0.75
 """A shape's width as a fraction of its grid cell; the rest is the room its position moves in."""
 
+PART_COLOR = np.array((200, 200, 200), dtype=np.uint8)
+"""With ``two_tone``, the colour of every shape's lower half (light grey: not in :data:`PALETTE`)."""
+
 
 class ChemicalPixelsEnv(ChemicalEnv):
     """Chemical whose states are also drawn as ``frame_size`` x ``frame_size`` RGB frames.
@@ -49,7 +52,8 @@ class ChemicalPixelsEnv(ChemicalEnv):
 
     metadata = {"render_modes": ["rgb_array"]}
 
-    def __init__(self, *, frame_size: int = 32, render_mode: str | None = None, **kwargs: Any) -> None:
+    def __init__(self, *, frame_size: int = 32, two_tone: bool = False, render_mode: str | None = None,
+                 **kwargs: Any) -> None:
         if kwargs.get("ood_noise_scale") is not None:
             raise ValueError("chemical-pixels draws positions from its frame layout: ood_noise_scale does not apply")
         if render_mode not in (None, "rgb_array"):
@@ -57,6 +61,10 @@ class ChemicalPixelsEnv(ChemicalEnv):
         super().__init__(**kwargs)
         self.render_mode = render_mode
         self.frame_size = frame_size
+        self.two_tone = bool(two_tone)
+        """Each shape's lower half drawn in :data:`PART_COLOR`, its upper half in its colour: objects of two
+        parts, where the parts of different objects look more alike than the two parts of one object (the
+        scene in which unsupervised slots split objects, chapter 7's case for the mask prior)."""
         self.grid = math.ceil(math.sqrt(self.num_objects))
         if self.num_colors > len(PALETTE):
             raise ValueError(f"chemical-pixels draws at most {len(PALETTE)} colours, got num_colors={self.num_colors}")
@@ -99,7 +107,12 @@ class ChemicalPixelsEnv(ChemicalEnv):
         for k in range(self.num_objects):
             labels[inside[:, k]] = k + 1
         rgb = np.concatenate([np.zeros((len(colors), 1, 3), np.uint8), PALETTE[colors]], axis=1)
-        return rgb[np.arange(len(colors))[:, None, None], labels], labels
+        frames = rgb[np.arange(len(colors))[:, None, None], labels]
+        if self.two_tone:
+            lower = self._pixel_offsets(positions)[1] > 0
+            for k in range(self.num_objects):
+                frames[(labels == k + 1) & lower[:, k]] = PART_COLOR
+        return frames, labels
 
     def env_spec(self) -> EnvSpec:
         """Chemical's spec, named ``chemical-pixels``, positions scaled to their spread over the frame."""
@@ -109,8 +122,8 @@ class ChemicalPixelsEnv(ChemicalEnv):
                                    config_json=json.dumps(self.config()))
 
     def config(self) -> dict[str, Any]:
-        """Chemical's configuration plus ``frame_size``."""
-        return {**super().config(), "frame_size": self.frame_size}
+        """Chemical's configuration plus ``frame_size`` and ``two_tone``."""
+        return {**super().config(), "frame_size": self.frame_size, "two_tone": self.two_tone}
 
     def _frame_info(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         frames, labels = self.render_states(obs[None])
@@ -125,14 +138,18 @@ class ChemicalPixelsEnv(ChemicalEnv):
         offsets = self.np_random.uniform(-slack, slack, size=shape)
         return (cell_centres + offsets) * (2.0 / g) - 1.0
 
+    def _pixel_offsets(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``dx`` ``[B, N, 1, W]`` and ``dy`` ``[B, N, H, 1]``: each pixel centre's offset from each object's
+        centre, in pixels (``dy > 0``: below it)."""
+        pixel = np.arange(self.frame_size) + 0.5
+        centres = (positions + 1.0) * (self.frame_size / 2.0)
+        return (pixel[None, None, None, :] - centres[..., 0, None, None],
+                pixel[None, None, :, None] - centres[..., 1, None, None])
+
     def _inside(self, positions: np.ndarray) -> np.ndarray:
         """bool ``[B, N, H, W]``: which pixels each object's shape covers."""
-        size = self.frame_size
-        pixel = np.arange(size) + 0.5
-        centres = (positions + 1.0) * (size / 2.0)
-        dx = pixel[None, None, None, :] - centres[..., 0, None, None]
-        dy = pixel[None, None, :, None] - centres[..., 1, None, None]
-        r = FILL * size / (2.0 * self.grid)
+        dx, dy = self._pixel_offsets(positions)
+        r = FILL * self.frame_size / (2.0 * self.grid)
         ax, ay = np.abs(dx), np.abs(dy)
         arm = r / 2.5
         drawn = np.stack([

@@ -9,7 +9,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from envs import make_env
-from envs.chemical_pixels import PALETTE, ChemicalPixelsEnv, masks_from_labels
+from envs.chemical_pixels import PALETTE, PART_COLOR, ChemicalPixelsEnv, masks_from_labels
 
 
 def _env(**kwargs: object) -> ChemicalPixelsEnv:
@@ -58,6 +58,25 @@ def test_colours_follow_the_state_and_background_is_black() -> None:
     recoloured[0] = (obs[0] + 1) % env.num_colors
     frames, _ = env.render_states(recoloured[None])
     assert (frames[0][masks[1]] == PALETTE[int(recoloured[0])]).all()
+
+
+def test_two_tone_shapes_are_grey_below_their_centre_and_keep_their_masks() -> None:
+    plain, two_tone = _env(frame_size=48), _env(frame_size=48, two_tone=True)
+    plain.reset(seed=6)
+    states = plain.sample_states(3)
+    frames, labels = plain.render_states(states)
+    toned, toned_labels = two_tone.render_states(states)
+    np.testing.assert_array_equal(toned_labels, labels)
+    rows = np.arange(48)[None, :, None] + 0.5
+    for k in range(plain.num_objects):
+        below = rows > (states[:, 3 * k + 2, None, None] + 1.0) * 24.0
+        part = (labels == k + 1) & below
+        assert part.any() and ((labels == k + 1) & ~below).any()
+        np.testing.assert_array_equal(toned[part], np.broadcast_to(PART_COLOR, (part.sum(), 3)))
+        np.testing.assert_array_equal(toned[(labels == k + 1) & ~below], frames[(labels == k + 1) & ~below])
+    np.testing.assert_array_equal(toned[labels == 0], 0)
+    assert two_tone.config()["two_tone"] is True and plain.config()["two_tone"] is False
+    assert not (PALETTE == PART_COLOR).all(axis=1).any()
 
 
 def test_shapes_sit_at_the_objects_positions() -> None:
