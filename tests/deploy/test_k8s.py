@@ -6,11 +6,16 @@ every service's config parser accepts, and roles on the bus: a Secret per role f
 ``causeway bus-secrets`` writes (kustomize ``secretGenerator``), each mounted by its role's pods only,
 the router running the generated configuration; and TLS: the router listens on ``tls/`` only with a
 certificate for the Service's names from its Secret, every service connects with ``tls/`` and has the
-CA that signed it mounted beside its credentials, the CA's key in no Secret."""
+CA that signed it mounted beside its credentials, the CA's key in no Secret. All of it holds for the
+base and for the overlay ``deploy/k8s-policy`` (the Component ``deploy/k8s/policy``: compose's ``policy``
+profile), which alone runs the policy-learner and the intrinsic-reward and makes the env-workers follow
+the policy."""
 from __future__ import annotations
 
 import base64
+import copy
 import json
+import re
 import shlex
 import shutil
 import subprocess
@@ -25,6 +30,8 @@ from services.dashboard.config import DashboardConfig
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.env_worker.config import EnvWorkerConfig
 from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.intrinsic_reward.config import IntrinsicRewardConfig
+from services.policy_learner.config import PolicyLearnerConfig
 from services.runtime.config import parse_config, settings_parser
 from tests.deploy import REPO, require_tool
 
@@ -34,9 +41,18 @@ yaml = pytest.importorskip("yaml")
 integration = pytest.mark.integration
 KUBERNETES_VERSIONS = ("1.30.0", kubernetes_validate.latest_version())
 CONFIGS = {"env-worker": EnvWorkerConfig, "dynamics-learner": DynamicsLearnerConfig,
-           "graph-evaluator": GraphEvaluatorConfig, "dashboard": DashboardConfig}
+           "graph-evaluator": GraphEvaluatorConfig, "dashboard": DashboardConfig,
+           "policy-learner": PolicyLearnerConfig, "intrinsic-reward": IntrinsicRewardConfig}
+POLICY = {"policy-learner", "intrinsic-reward"}
+"""compose.yaml's ``policy`` profile: only the overlay runs them."""
+OVERLAY = "k8s-policy"
+RENDERS = {"k8s": set(CONFIGS) - POLICY, OVERLAY: set(CONFIGS)}
+"""deploy/<directory> -> the services its render runs."""
+STATEFUL = {"dynamics-learner", "graph-evaluator", "policy-learner"}
+"""The services that checkpoint to their run dir (the intrinsic-reward saves nothing: a Deployment)."""
 ROUTER = {"app.kubernetes.io/part-of": "causeway", "app.kubernetes.io/component": "router"}
 KUBE_DNS = {"k8s-app": "kube-dns"}
+PROMETHEUS = {"app.kubernetes.io/name": "prometheus"}
 BUS_SECRETS = ("causeway bus-secrets --run k8s --method cdl --out deploy/k8s --users-file /etc/zenoh/router-users "
                "--listen 'tls/[::]:7447' --tls-name router --tls-name router.causeway.svc "
                "--tls-name router.causeway.svc.cluster.local --tls-name localhost")
@@ -53,7 +69,8 @@ def _kustomize(directory: Path) -> subprocess.CompletedProcess[str]:
 
 
 def _copy_without_secrets(target: Path) -> Path:
-    """deploy/k8s as a fresh clone has it (no generated secrets/)."""
+    """deploy/k8s as a fresh clone has it (no generated secrets/), the overlay deploy/k8s-policy beside it."""
+    shutil.copytree(REPO / "deploy" / OVERLAY, target.parent / OVERLAY)
     return Path(shutil.copytree(REPO / "deploy" / "k8s", target, ignore=shutil.ignore_patterns("secrets")))
 
 
@@ -68,11 +85,26 @@ def generated(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def manifests(generated: Path) -> list[dict[str, Any]]:
-    """``kubectl kustomize deploy/k8s`` (with its secrets generated): every object, namespace applied."""
-    result = _kustomize(generated)
-    assert result.returncode == 0, result.stderr
-    return [doc for doc in yaml.safe_load_all(result.stdout) if doc]
+def renders(generated: Path) -> dict[str, list[dict[str, Any]]]:
+    """``kubectl kustomize deploy/<directory>`` (with the secrets generated) for each of RENDERS: every
+    object, namespace applied."""
+    out = {}
+    for directory in RENDERS:
+        result = _kustomize(generated.parent / directory)
+        assert result.returncode == 0, result.stderr
+        out[directory] = [doc for doc in yaml.safe_load_all(result.stdout) if doc]
+    return out
+
+
+@pytest.fixture(scope="module", params=sorted(RENDERS))
+def render(request: pytest.FixtureRequest) -> str:
+    """Which directory's render a test checks: the base, then the overlay."""
+    return request.param
+
+
+@pytest.fixture(scope="module")
+def manifests(renders: dict[str, list[dict[str, Any]]], render: str) -> list[dict[str, Any]]:
+    return renders[render]
 
 
 def _find(manifests: list[dict[str, Any]], kind: str, name: str) -> dict[str, Any]:
@@ -163,15 +195,17 @@ def test_every_workload_mounts_exactly_its_roles_secret(manifests: list[dict[str
         credentials = read_credentials(_secret_file(secret, "credentials", tmp_path / name))
         assert credentials.user == name and f"{name}:{credentials.password}\n" in users, name
     generated = {m["metadata"]["name"].rsplit("-", 1)[0] for m in manifests if m["kind"] == "Secret"}
-    assert generated == {"zenoh-router"} | {f"bus-{name}" for name in _causeway_workloads(manifests)}
+    assert generated == {"zenoh-router"} | {f"bus-{name}" for name in CONFIGS}, "the base generates the policy's too"
 
 
 @integration
 def test_without_generated_secrets_nothing_renders(tmp_path: Path) -> None:
     """A fresh clone cannot apply an open router: kustomize names the missing files."""
     assert BUS_SECRETS in (REPO / "deploy" / "k8s" / "kustomization.yaml").read_text()
-    result = _kustomize(_copy_without_secrets(tmp_path / "k8s"))
-    assert result.returncode != 0 and "secrets/router.json5" in result.stderr, result.stderr
+    base = _copy_without_secrets(tmp_path / "k8s")
+    for directory in RENDERS:
+        result = _kustomize(base.parent / directory)
+        assert result.returncode != 0 and "secrets/router.json5" in result.stderr, (directory, result.stderr)
 
 
 @integration
@@ -187,15 +221,17 @@ def test_env_workers_are_a_deployment_scaled_by_an_hpa(manifests: list[dict[str,
 
 
 @integration
-@pytest.mark.parametrize("name", ["dynamics-learner", "graph-evaluator"])
-def test_stateful_services_are_statefulsets_with_volume_claims(manifests: list[dict[str, Any]], name: str) -> None:
-    workload = _find(manifests, "StatefulSet", name)
-    assert workload["spec"]["replicas"] == 1 and workload["spec"]["serviceName"] == name
-    claims = {c["metadata"]["name"]: c for c in workload["spec"]["volumeClaimTemplates"]}
-    mounts = {m["name"]: m["mountPath"] for m in _containers(workload)[0]["volumeMounts"]}
-    assert mounts["data"] == "/data" and "data" in claims
-    assert workload["spec"]["template"]["spec"]["securityContext"]["fsGroup"] == 10001, "the image's user"
-    assert _find(manifests, "Service", name)["spec"]["clusterIP"] == "None"
+def test_stateful_services_are_statefulsets_with_volume_claims(manifests: list[dict[str, Any]], render: str) -> None:
+    stateful = {m["metadata"]["name"] for m in manifests if m["kind"] == "StatefulSet"}
+    assert stateful == STATEFUL & RENDERS[render]
+    for name in stateful:
+        workload = _find(manifests, "StatefulSet", name)
+        assert workload["spec"]["replicas"] == 1 and workload["spec"]["serviceName"] == name
+        claims = {c["metadata"]["name"]: c for c in workload["spec"]["volumeClaimTemplates"]}
+        mounts = {m["name"]: m["mountPath"] for m in _containers(workload)[0]["volumeMounts"]}
+        assert mounts["data"] == "/data" and "data" in claims, name
+        assert workload["spec"]["template"]["spec"]["securityContext"]["fsGroup"] == 10001, "the image's user"
+        assert _find(manifests, "Service", name)["spec"]["clusterIP"] == "None"
 
 
 def _causeway_workloads(manifests: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -203,24 +239,77 @@ def _causeway_workloads(manifests: list[dict[str, Any]]) -> dict[str, dict[str, 
             and m["metadata"]["name"] != "router"}
 
 
-@integration
-def test_every_service_is_scraped_and_configured_with_known_settings(manifests: list[dict[str, Any]]) -> None:
-    workloads = _causeway_workloads(manifests)
-    assert set(workloads) == set(CONFIGS)
+def _settings(manifests: list[dict[str, Any]], workload: dict[str, Any]) -> dict[str, str]:
+    """The CAUSEWAY_* environment of the workload's container: the ConfigMap's, then its own ``env``."""
     shared = _find(manifests, "ConfigMap", "causeway-settings")["data"]
+    own = {e["name"]: e["value"].replace("$(CAUSEWAY_RUN_ID)", shared["CAUSEWAY_RUN_ID"])
+           for e in _containers(workload)[0].get("env", [])}
+    return {**shared, **own}
+
+
+@integration
+def test_every_service_is_scraped_and_configured_with_known_settings(manifests: list[dict[str, Any]],
+                                                                    render: str) -> None:
+    workloads = _causeway_workloads(manifests)
+    assert set(workloads) == RENDERS[render]
     for name, workload in workloads.items():
         annotations = workload["spec"]["template"]["metadata"]["annotations"]
         assert (annotations["prometheus.io/scrape"], annotations["prometheus.io/port"]) == ("true", "9100"), name
         container = _containers(workload)[0]
         assert container["command"] == ["python", "-m", f"services.{name.replace('-', '_')}"], name
-        env = dict(shared)
-        env.update({e["name"]: e["value"].replace("$(CAUSEWAY_RUN_ID)", shared["CAUSEWAY_RUN_ID"])
-                    for e in container.get("env", [])})
+        env = _settings(manifests, workload)
         known = {flag.env for flag in settings_parser(CONFIGS[name])[1]}
         assert set(env) <= known, f"{name}: unknown settings {set(env) - known}"
         cfg = parse_config(CONFIGS[name], [], env)
         assert (cfg.zenoh_connect, cfg.metrics_port, cfg.run_dir) == ("tls/router:7447", 9100, "/data/runs/k8s"), name
         assert cfg.bus_tls_root_ca == ROOT_CA, name
+
+
+def _objects(manifests: list[dict[str, Any]]) -> dict[tuple[str, str], dict[str, Any]]:
+    return {(m["kind"], m["metadata"]["name"]): m for m in manifests}
+
+
+@integration
+def test_the_overlay_is_the_base_plus_the_policy_and_env_workers_that_follow_it(
+        renders: dict[str, list[dict[str, Any]]]) -> None:
+    """deploy/k8s-policy adds the policy-learner (a StatefulSet: it checkpoints), the intrinsic-reward (a
+    Deployment of one, never two at once: it saves nothing) and CAUSEWAY_FOLLOW_POLICY=true on the
+    env-workers, and changes nothing else; the base runs neither and its workers act at random."""
+    base, overlay = _objects(renders["k8s"]), _objects(renders[OVERLAY])
+    added = {("StatefulSet", "policy-learner"), ("Service", "policy-learner"), ("Deployment", "intrinsic-reward")}
+    assert set(overlay) == set(base) | added and not set(base) & added
+    scorer = overlay[("Deployment", "intrinsic-reward")]["spec"]
+    assert scorer["replicas"] == 1 and scorer["strategy"] == {"type": "Recreate"}
+    workers = {name: objects[("Deployment", "env-worker")] for name, objects in (("k8s", base), (OVERLAY, overlay))}
+    follows = {name: parse_config(EnvWorkerConfig, [], _settings(renders[name], w)).follow_policy
+               for name, w in workers.items()}
+    assert follows == {"k8s": False, OVERLAY: True}
+    without = copy.deepcopy(workers[OVERLAY])
+    container = _containers(without)[0]
+    container["env"] = [e for e in container["env"] if e["name"] != "CAUSEWAY_FOLLOW_POLICY"]
+    assert without == workers["k8s"]
+    assert all(overlay[key] == base[key] for key in base if key != ("Deployment", "env-worker"))
+
+
+@integration
+def test_the_overlay_runs_what_compose_runs_with_the_policy_profile(renders: dict[str, list[dict[str, Any]]]) -> None:
+    """The services compose.yaml runs (``--profile policy``: the overlay; without: the base), and the
+    policy profile's own settings at compose's defaults."""
+    compose = yaml.safe_load((REPO / "compose.yaml").read_text())
+    services = {name: service for name, service in compose["services"].items()
+                if service.get("command", [""])[0] == "python"}
+    assert {name for name, s in services.items() if "policy" in s.get("profiles", [])} == POLICY
+    assert set(services) == RENDERS[OVERLAY]
+    assert {name for name, s in services.items() if "profiles" not in s} == RENDERS["k8s"]
+    shared = set(compose["x-causeway-env"])
+    workloads = _causeway_workloads(renders[OVERLAY])
+    for name in POLICY:
+        env = _settings(renders[OVERLAY], workloads[name])
+        wanted = {key: re.sub(r"^\$\{\w+:-(.*)\}$", r"\1", str(value))
+                for key, value in services[name]["environment"].items() if key not in shared}
+        assert wanted and all(env.get(key) == value for key, value in wanted.items()), (name, wanted)
+    cfg = {name: parse_config(CONFIGS[name], [], _settings(renders[OVERLAY], workloads[name])) for name in POLICY}
+    assert cfg["policy-learner"].scored and cfg["intrinsic-reward"].reward == "preddiff"
 
 
 @integration
@@ -282,6 +371,10 @@ def test_network_policies_let_services_reach_only_the_router(manifests: list[dic
                 assert to_router or to_dns, f"{name} may reach {peer}"
             ports = {(p["protocol"], p["port"]) for p in rule["ports"]}
             assert ports in ({("TCP", 7447)}, {("UDP", 53), ("TCP", 53)}), f"{name}: {ports}"
+        scrapes = [rule for p in policies if _selects(p["spec"]["podSelector"], labels)
+                   for rule in p["spec"].get("ingress", []) if {"protocol": "TCP", "port": 9100} in rule["ports"]]
+        assert any(peer.get("podSelector", {}).get("matchLabels") == PROMETHEUS for rule in scrapes
+                   for peer in rule["from"]), f"Prometheus may not scrape {name}"
     router_labels = _find(manifests, "Deployment", "router")["spec"]["template"]["metadata"]["labels"]
     ingress = [rule for p in policies if _selects(p["spec"]["podSelector"], router_labels)
                for rule in p["spec"].get("ingress", [])]
@@ -289,7 +382,7 @@ def test_network_policies_let_services_reach_only_the_router(manifests: list[dic
 
 
 @integration
-def test_a_pod_reaches_the_rendered_router_over_tls_by_the_service_name(manifests: list[dict[str, Any]],
+def test_a_pod_reaches_the_rendered_router_over_tls_by_the_service_name(renders: dict[str, list[dict[str, Any]]],
                                                                         tmp_path: Path) -> None:
     """The rendered router (its Secret's configuration, users and certificate) run in a network namespace
     where ``router`` names loopback: a client with the env-worker's Secret and the ConfigMap's endpoint
@@ -299,6 +392,7 @@ def test_a_pod_reaches_the_rendered_router_over_tls_by_the_service_name(manifest
 
     from tests.deploy.netns import make_host
 
+    manifests = renders["k8s"]  # the overlay's router is the same object
     python = str(REPO / ".venv" / "bin" / "python") if (REPO / ".venv" / "bin" / "python").exists() else sys.executable
     router_dir, pod_dir = tmp_path / "etc-zenoh", tmp_path / "pod"
     router_dir.mkdir()
