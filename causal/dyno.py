@@ -35,7 +35,7 @@ from causal.factored import FactorLayout
 from causal.fg_ari import mean_fg_ari
 from causal.method import layout_from_config, model_config_json
 from causal.slot_world_model import SlotWorldModel, WorldModelConfig
-from causal.slots import MASK_PRIORS, SlotConfig, SlotModel, SlotTrainer, frames_to_tensor
+from causal.slots import MASK_PRIORS, TOKEN_MASKS, SlotConfig, SlotModel, SlotTrainer, frames_to_tensor
 from envs.chemical_pixels import ChemicalPixelsEnv
 from proto.messages import EnvSpec
 from proto.settings import doc
@@ -54,6 +54,14 @@ class DynOConfig:
     feature_dim: int = doc(16, "d_e: channels of the frame autoencoder's feature tokens")
     iterations: int = doc(3, "slot-attention refinement steps")
     mask_prior: str = doc("annealed", "annealed (Dyn-O), none (SOLV) or always (the oracle)", choices=MASK_PRIORS)
+    token_mask: str = doc("touch", "which slots a feature token may take under the masks: touch (any object it "
+                                   "touches and the background) or objects (only the objects it touches)",
+                          choices=TOKEN_MASKS)
+    mask_binding: float = doc(0.0, "weight of the mask prior's binding term (causal.slots.SlotConfig.mask_binding; "
+                                   "not in the chapter; with token_mask objects it is what lifts the annealed "
+                                   "prior above no prior on objects of two parts, docs/results.md)")
+    two_tone: bool = doc(False, "render each shape's lower half in one grey shared by all objects (objects of "
+                                "two parts: envs.chemical_pixels.ChemicalPixelsEnv.two_tone)")
     ae_updates: int = doc(300, "phase 1: frame-autoencoder updates (then frozen)")
     slot_updates: int = doc(1500, "phase 2: slot updates, U of the mask-drop schedule")
     ae_lr: float = doc(1e-3, "Adam learning rate of the frame autoencoder")
@@ -70,11 +78,16 @@ class DynOConfig:
             raise ValueError("Dyn-O learning rates must be positive finite numbers")
         if self.mask_prior not in MASK_PRIORS:
             raise ValueError(f"mask_prior must be one of {MASK_PRIORS}, got {self.mask_prior!r}")
+        if self.token_mask not in TOKEN_MASKS:
+            raise ValueError(f"token_mask must be one of {TOKEN_MASKS}, got {self.token_mask!r}")
+        if not (math.isfinite(self.mask_binding) and self.mask_binding >= 0):
+            raise ValueError(f"mask_binding must be a finite number >= 0, got {self.mask_binding}")
 
     def slots(self, num_objects: int) -> SlotConfig:
         return SlotConfig(num_slots=self.num_slots or num_objects + 1, feature_dim=self.feature_dim,
                           slot_dim=self.slot_dim, iterations=self.iterations, lr=self.slot_lr,
-                          batch_size=self.batch_size, mask_prior=self.mask_prior)
+                          batch_size=self.batch_size, mask_prior=self.mask_prior, token_mask=self.token_mask,
+                          mask_binding=self.mask_binding)
 
 
 def chemical_geometry(layout: FactorLayout) -> tuple[int, int]:
@@ -100,7 +113,7 @@ class DynOModel(nn.Module):
 
     def renderer(self) -> ChemicalPixelsEnv:
         return ChemicalPixelsEnv(graph="chain", num_objects=self.num_objects, num_colors=self.num_colors,
-                                 frame_size=self.config.frame_size)
+                                 frame_size=self.config.frame_size, two_tone=self.config.two_tone)
 
 
 def model_from_config(data: dict[str, Any]) -> DynOModel:

@@ -100,6 +100,26 @@ def test_only_chemical_layouts_can_be_rendered_and_settings_are_checked() -> Non
         DynOConfig(batch_size=0)
     with pytest.raises(ValueError, match="mask_prior"):
         DynOConfig(mask_prior="sometimes")
+    with pytest.raises(ValueError, match="token_mask"):
+        DynOConfig(token_mask="some")
+    with pytest.raises(ValueError, match="mask_binding"):
+        DynOConfig(mask_binding=-1.0)
+
+
+def test_two_tone_frames_and_the_binding_term_reach_the_slot_phase() -> None:
+    """The run's Table 7.1 setting: frames of two-part objects, masks that give a token to its objects
+    only, and the binding term, which the slot phase then reports."""
+    config = dataclasses.replace(TINY, ae_updates=0, two_tone=True, token_mask="objects", mask_binding=1.0)
+    trainer = DynOTrainer(_layout(), config, seed=0)
+    slots = trainer.model.slots.config
+    assert (slots.token_mask, slots.mask_binding) == ("objects", 1.0) and trainer.render.two_tone
+    state = _batch()[0]
+    plain, _ = DynOTrainer(_layout(), TINY, seed=0).frames(state)
+    toned, labels = trainer.frames(state)
+    assert not torch.equal(plain, toned) and torch.equal(plain[labels == 0], toned[labels == 0])
+    stats = trainer.update(*_batch())
+    assert stats["phase"] == 1.0 and stats["mask_binding_ce"] > 0.0
+    assert model_from_config(json.loads(trainer.config_json())).renderer().two_tone
 
 
 def test_the_slot_scorer_gives_fg_ari_of_unseen_frames() -> None:
