@@ -18,7 +18,11 @@ control added. Mount each service's ``<role>.credentials`` as a secret and point
 adds its role and changes the env-workers': ``frames``, the workers publish frames instead of
 transitions and the extractor publishes slot transitions (``causeway run --worker-publish-frames
 true``); ``latent``, the workers publish frames beside their transitions and the extractor labels
-them with the learner's latent actions (``causeway run --label-latent-actions true``).
+them with the learner's latent actions (``causeway run --label-latent-actions true``). Without it (``none``)
+``factor-extractor.credentials`` is written all the same, for a user the router does not admit (in
+neither ``router-users`` nor the access control): a kustomize base generates every Secret from a file
+that must exist (deploy/k8s generates ``bus-factor-extractor`` for its frames and labels overlays),
+while a stack without an extractor has no such role.
 
 ``--file-mode 644`` is for Compose: outside Swarm a compose secret is a bind mount of the file with
 its host owner and mode (``uid``/``gid``/``mode`` are ignored), and the containers run as other users
@@ -49,8 +53,8 @@ from pathlib import Path, PurePosixPath
 from typing import Sequence
 
 from proto import topics
-from services.bus.credentials import SECRETS_DIR, read_credentials, write_run_secrets
-from services.bus.roles import ROLES, access_control, new_passwords, run_roles
+from services.bus.credentials import SECRETS_DIR, read_credentials, role_file, write_run_secrets
+from services.bus.roles import FRAMES_ROLE, ROLES, access_control, new_passwords, run_roles
 from services.bus.router import ROUTER_COMMON_NAME, with_meshed_routers
 from services.ops.bus_tls import CA_CERTIFICATE, CA_KEY, write_tls
 
@@ -161,6 +165,14 @@ def _tls_settings(args: argparse.Namespace, directory: Path) -> dict[str, object
     return settings
 
 
+def _write_unadmitted(out: str, role: str) -> None:
+    """``role``'s credentials file for a user in no users file: a Secret that kustomize can generate, which
+    opens no session."""
+    path = role_file(out, role)
+    path.touch(0o600)
+    path.write_text(f"{role}:{new_passwords((role,))[role]}\n")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -177,6 +189,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   cert_common_names=[ROUTER_COMMON_NAME] if args.join else [])
         passwords = new_passwords(tuple(roles) + tuple(args.mesh_user))
         auth = write_run_secrets(args.out, passwords, acl)
+        if FRAMES_ROLE not in roles:
+            _write_unadmitted(args.out, FRAMES_ROLE)
         target = Path(args.out) / SECRETS_DIR / ROUTER_FILE
         settings = _tls_settings(args, target.parent)
         if args.listen:

@@ -7,9 +7,10 @@ every service's config parser accepts, and roles on the bus: a Secret per role f
 the router running the generated configuration; and TLS: the router listens on ``tls/`` only with a
 certificate for the Service's names from its Secret, every service connects with ``tls/`` and has the
 CA that signed it mounted beside its credentials, the CA's key in no Secret. All of it holds for the
-base and for the overlay ``deploy/k8s-policy`` (the Component ``deploy/k8s/policy``: compose's ``policy``
-profile), which alone runs the policy-learner and the intrinsic-reward and makes the env-workers follow
-the policy."""
+base and the overlays, each rendered with the secrets its documented bus-secrets command makes:
+``deploy/k8s-policy`` (compose's ``policy`` profile: the policy-learner, the intrinsic-reward, env-workers
+that follow the policy), ``deploy/k8s-frames`` and ``deploy/k8s-labels`` (compose's frames and labels
+overrides: the factor-extractor)."""
 from __future__ import annotations
 
 import base64
@@ -25,10 +26,12 @@ from typing import Any
 import pytest
 
 from services.bus.credentials import read_credentials
+from services.bus.roles import access_control, run_roles
 from services.cli import main as cli_main
 from services.dashboard.config import DashboardConfig
 from services.dynamics_learner.config import DynamicsLearnerConfig
 from services.env_worker.config import EnvWorkerConfig
+from services.factor_extractor.config import FactorExtractorConfig
 from services.graph_evaluator.config import GraphEvaluatorConfig
 from services.intrinsic_reward.config import IntrinsicRewardConfig
 from services.policy_learner.config import PolicyLearnerConfig
@@ -42,13 +45,18 @@ integration = pytest.mark.integration
 KUBERNETES_VERSIONS = ("1.30.0", kubernetes_validate.latest_version())
 CONFIGS = {"env-worker": EnvWorkerConfig, "dynamics-learner": DynamicsLearnerConfig,
            "graph-evaluator": GraphEvaluatorConfig, "dashboard": DashboardConfig,
-           "policy-learner": PolicyLearnerConfig, "intrinsic-reward": IntrinsicRewardConfig}
+           "policy-learner": PolicyLearnerConfig, "intrinsic-reward": IntrinsicRewardConfig,
+           "factor-extractor": FactorExtractorConfig}
 POLICY = {"policy-learner", "intrinsic-reward"}
 """compose.yaml's ``policy`` profile: only the overlay runs them."""
 OVERLAY = "k8s-policy"
-RENDERS = {"k8s": set(CONFIGS) - POLICY, OVERLAY: set(CONFIGS)}
+EXTRACTOR = "factor-extractor"
+EXTRACTOR_OVERLAYS = {"k8s-frames": "compose.frames.yaml", "k8s-labels": "compose.labels.yaml"}
+"""deploy/<directory> -> the compose override (deploy/<file>) it is the equivalent of; only they run the extractor."""
+BASE = set(CONFIGS) - POLICY - {EXTRACTOR}
+RENDERS = {"k8s": BASE, OVERLAY: BASE | POLICY, **{overlay: BASE | {EXTRACTOR} for overlay in EXTRACTOR_OVERLAYS}}
 """deploy/<directory> -> the services its render runs."""
-STATEFUL = {"dynamics-learner", "graph-evaluator", "policy-learner"}
+STATEFUL = {"dynamics-learner", "graph-evaluator", "policy-learner", "factor-extractor"}
 """The services that checkpoint to their run dir (the intrinsic-reward saves nothing: a Deployment)."""
 ROUTER = {"app.kubernetes.io/part-of": "causeway", "app.kubernetes.io/component": "router"}
 KUBE_DNS = {"k8s-app": "kube-dns"}
@@ -57,6 +65,13 @@ BUS_SECRETS = ("causeway bus-secrets --run k8s --method cdl --out deploy/k8s --u
                "--listen 'tls/[::]:7447' --tls-name router --tls-name router.causeway.svc "
                "--tls-name router.causeway.svc.cluster.local --tls-name localhost")
 """The command kustomization.yaml documents; it writes the files its secretGenerator reads."""
+EXTRACTOR_SECRETS = {"k8s-frames": f"{BUS_SECRETS} --extractor frames",
+                     "k8s-labels": f"{BUS_SECRETS.replace('--method cdl', '--method flam')} --extractor latent"}
+"""The command each extractor overlay's kustomization.yaml documents: the same files, with the extractor's role."""
+SECRETS = {directory: EXTRACTOR_SECRETS.get(directory, BUS_SECRETS) for directory in RENDERS}
+"""deploy/<directory> -> the bus-secrets command it is applied after."""
+SETTINGS_CHANGES = {"k8s-labels": {"CAUSEWAY_METHOD": "flam"}}
+"""deploy/<overlay> -> what it changes in causeway-settings (compose: CAUSEWAY_METHOD=flam make up)."""
 CREDENTIALS = "/run/secrets/causeway/credentials"
 ROOT_CA = "/run/secrets/causeway/ca.pem"
 SERVICE_NAMES = {"router", "router.causeway.svc", "router.causeway.svc.cluster.local"}
@@ -69,31 +84,37 @@ def _kustomize(directory: Path) -> subprocess.CompletedProcess[str]:
 
 
 def _copy_without_secrets(target: Path) -> Path:
-    """deploy/k8s as a fresh clone has it (no generated secrets/), the overlay deploy/k8s-policy beside it."""
-    shutil.copytree(REPO / "deploy" / OVERLAY, target.parent / OVERLAY)
+    """deploy/k8s as a fresh clone has it (no generated secrets/), the overlays beside it."""
+    for overlay in set(RENDERS) - {"k8s"}:
+        shutil.copytree(REPO / "deploy" / overlay, target.parent / overlay)
     return Path(shutil.copytree(REPO / "deploy" / "k8s", target, ignore=shutil.ignore_patterns("secrets")))
 
 
 @pytest.fixture(scope="module")
-def generated(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A copy of deploy/k8s with the secrets generated by the documented command."""
-    k8s = _copy_without_secrets(tmp_path_factory.mktemp("deploy") / "k8s")
-    args = shlex.split(BUS_SECRETS)[1:]
-    args[args.index("--out") + 1] = str(k8s)
-    assert cli_main(args + ["--router-config", str(REPO / "deploy" / "zenoh" / "router.json5")]) == 0
-    return k8s
+def generated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Copies of deploy/k8s (the overlays beside each), one per documented command, with the secrets that
+    command generates: command -> the copy."""
+    copies = {}
+    for command in dict.fromkeys(SECRETS.values()):
+        k8s = _copy_without_secrets(tmp_path_factory.mktemp("deploy") / "k8s")
+        args = shlex.split(command)[1:]
+        args[args.index("--out") + 1] = str(k8s)
+        assert cli_main(args + ["--router-config", str(REPO / "deploy" / "zenoh" / "router.json5")]) == 0
+        copies[command] = k8s
+    return copies
+
+
+def _rendered(directory: Path) -> list[dict[str, Any]]:
+    """``kubectl kustomize directory``: every object, namespace applied."""
+    result = _kustomize(directory)
+    assert result.returncode == 0, result.stderr
+    return [doc for doc in yaml.safe_load_all(result.stdout) if doc]
 
 
 @pytest.fixture(scope="module")
-def renders(generated: Path) -> dict[str, list[dict[str, Any]]]:
-    """``kubectl kustomize deploy/<directory>`` (with the secrets generated) for each of RENDERS: every
-    object, namespace applied."""
-    out = {}
-    for directory in RENDERS:
-        result = _kustomize(generated.parent / directory)
-        assert result.returncode == 0, result.stderr
-        out[directory] = [doc for doc in yaml.safe_load_all(result.stdout) if doc]
-    return out
+def renders(generated: dict[str, Path]) -> dict[str, list[dict[str, Any]]]:
+    """``kubectl kustomize deploy/<directory>`` for each of RENDERS, with the secrets its command generates."""
+    return {directory: _rendered(generated[SECRETS[directory]].parent / directory) for directory in RENDERS}
 
 
 @pytest.fixture(scope="module", params=sorted(RENDERS))
@@ -183,7 +204,13 @@ def test_router_is_a_deployment_behind_a_service_with_the_compose_config(manifes
 
 
 @integration
-def test_every_workload_mounts_exactly_its_roles_secret(manifests: list[dict[str, Any]], tmp_path: Path) -> None:
+def test_every_workload_mounts_exactly_its_roles_secret(manifests: list[dict[str, Any]], render: str,
+                                                        tmp_path: Path) -> None:
+    """Each workload mounts only its own role's Secret, whose user the router admits; and the router's access
+    control is the one of the run, method and frames the workloads are configured with (the documented
+    bus-secrets command's: an extractor overlay applied with the base's secrets would have its frames denied)."""
+    import zenoh
+
     users = base64.b64decode(_secret(manifests, "zenoh-router")["data"]["router-users"]).decode()
     settings = _find(manifests, "ConfigMap", "causeway-settings")["data"]
     assert settings["CAUSEWAY_BUS_CREDENTIALS"] == CREDENTIALS
@@ -195,13 +222,23 @@ def test_every_workload_mounts_exactly_its_roles_secret(manifests: list[dict[str
         credentials = read_credentials(_secret_file(secret, "credentials", tmp_path / name))
         assert credentials.user == name and f"{name}:{credentials.password}\n" in users, name
     generated = {m["metadata"]["name"].rsplit("-", 1)[0] for m in manifests if m["kind"] == "Secret"}
-    assert generated == {"zenoh-router"} | {f"bus-{name}" for name in CONFIGS}, "the base generates the policy's too"
+    assert generated == {"zenoh-router"} | {f"bus-{name}" for name in CONFIGS}, "the base generates every role's"
+    extractor = read_credentials(_secret_file(_secret(manifests, f"bus-{EXTRACTOR}"), "credentials", tmp_path / "x"))
+    assert (f"{EXTRACTOR}:{extractor.password}\n" in users) == (EXTRACTOR in RENDERS[render]), "admitted where it runs"
+    worker = parse_config(EnvWorkerConfig, [], _settings(manifests, _find(manifests, "Deployment", "env-worker")))
+    roles = run_roles(worker.run_id, worker.method, dashboard_run="*", frames=worker.publish_frames,
+                      latent=worker.frames_beside)
+    wanted = zenoh.Config()  # as the router's file spells it: every unset field null
+    wanted.insert_json5("access_control", json.dumps(access_control(roles)))
+    router = json.loads(base64.b64decode(_secret(manifests, "zenoh-router")["data"]["router.json5"]))
+    assert router["access_control"] == json.loads(wanted.get_json("access_control"))
 
 
 @integration
 def test_without_generated_secrets_nothing_renders(tmp_path: Path) -> None:
     """A fresh clone cannot apply an open router: kustomize names the missing files."""
-    assert BUS_SECRETS in (REPO / "deploy" / "k8s" / "kustomization.yaml").read_text()
+    for directory, command in {"k8s": BUS_SECRETS, **EXTRACTOR_SECRETS}.items():
+        assert command in (REPO / "deploy" / directory / "kustomization.yaml").read_text(), directory
     base = _copy_without_secrets(tmp_path / "k8s")
     for directory in RENDERS:
         result = _kustomize(base.parent / directory)
@@ -269,32 +306,50 @@ def _objects(manifests: list[dict[str, Any]]) -> dict[tuple[str, str], dict[str,
     return {(m["kind"], m["metadata"]["name"]): m for m in manifests}
 
 
+def _compose_default(value: object) -> str:
+    """A compose environment value as compose resolves it with the variable unset (``${X:-d}`` -> ``d``)."""
+    return re.sub(r"^\$\{\w+:-(.*)\}$", r"\1", str(value))
+
+
+def _compose_override(overlay: str) -> dict[str, Any]:
+    return yaml.safe_load((REPO / "deploy" / EXTRACTOR_OVERLAYS[overlay]).read_text())["services"]
+
+
+def _worker_changes(overlay: str) -> dict[str, str]:
+    """The env-workers' variables deploy/<overlay> sets: the policy's flag, or its compose override's (defaults)."""
+    if overlay == OVERLAY:
+        return {"CAUSEWAY_FOLLOW_POLICY": "true"}
+    return {k: _compose_default(v) for k, v in _compose_override(overlay)["env-worker"]["environment"].items()}
+
+
 @integration
-def test_the_overlay_is_the_base_plus_the_policy_and_env_workers_that_follow_it(
-        renders: dict[str, list[dict[str, Any]]]) -> None:
-    """deploy/k8s-policy adds the policy-learner (a StatefulSet: it checkpoints), the intrinsic-reward (a
-    Deployment of one, never two at once: it saves nothing) and CAUSEWAY_FOLLOW_POLICY=true on the
-    env-workers, and changes nothing else; the base runs neither and its workers act at random."""
-    base, overlay = _objects(renders["k8s"]), _objects(renders[OVERLAY])
-    added = {("StatefulSet", "policy-learner"), ("Service", "policy-learner"), ("Deployment", "intrinsic-reward")}
-    assert set(overlay) == set(base) | added and not set(base) & added
-    scorer = overlay[("Deployment", "intrinsic-reward")]["spec"]
-    assert scorer["replicas"] == 1 and scorer["strategy"] == {"type": "Recreate"}
-    workers = {name: objects[("Deployment", "env-worker")] for name, objects in (("k8s", base), (OVERLAY, overlay))}
-    follows = {name: parse_config(EnvWorkerConfig, [], _settings(renders[name], w)).follow_policy
-               for name, w in workers.items()}
-    assert follows == {"k8s": False, OVERLAY: True}
-    without = copy.deepcopy(workers[OVERLAY])
-    container = _containers(without)[0]
-    container["env"] = [e for e in container["env"] if e["name"] != "CAUSEWAY_FOLLOW_POLICY"]
-    assert without == workers["k8s"]
-    assert all(overlay[key] == base[key] for key in base if key != ("Deployment", "env-worker"))
+@pytest.mark.parametrize("overlay", sorted(set(RENDERS) - {"k8s"}))
+def test_an_overlay_is_the_base_plus_its_services_and_env_workers_set_for_them(
+        generated: dict[str, Path], renders: dict[str, list[dict[str, Any]]], overlay: str) -> None:
+    """Each overlay adds its services (a StatefulSet and a headless Service for one that checkpoints, else a
+    Deployment), sets only the env-workers' variables that go with them (and, for FLAM, the stack's
+    method), and changes nothing else; compared with the base rendered from the same secrets."""
+    rendered = _rendered(generated[SECRETS[overlay]].parent / "k8s")
+    base, ours = _objects(rendered), _objects(renders[overlay])
+    new = RENDERS[overlay] - RENDERS["k8s"]
+    added = {("StatefulSet" if name in STATEFUL else "Deployment", name) for name in new}
+    added |= {("Service", name) for name in new & STATEFUL}
+    assert set(ours) == set(base) | added and not set(base) & added
+    worker, settings = ("Deployment", "env-worker"), ("ConfigMap", "causeway-settings")
+    assert {key for key in base if ours[key] != base[key]} <= {worker, settings}
+    changes = {**SETTINGS_CHANGES.get(overlay, {}), **_worker_changes(overlay)}
+    assert _settings(renders[overlay], ours[worker]) == {**_settings(rendered, base[worker]), **changes}
+    unchanged = copy.deepcopy(ours[worker])
+    _containers(unchanged)[0]["env"] = _containers(base[worker])[0]["env"]
+    assert unchanged == base[worker], "only the env-workers' env changes"
+    assert ours[settings] == {**base[settings], "data": {**base[settings]["data"], **SETTINGS_CHANGES.get(overlay, {})}}
 
 
 @integration
 def test_the_overlay_runs_what_compose_runs_with_the_policy_profile(renders: dict[str, list[dict[str, Any]]]) -> None:
     """The services compose.yaml runs (``--profile policy``: the overlay; without: the base), and the
-    policy profile's own settings at compose's defaults."""
+    policy profile's own settings at compose's defaults; the intrinsic-reward is a Deployment of one,
+    never two at once (it saves nothing), and the env-workers follow the policy."""
     compose = yaml.safe_load((REPO / "compose.yaml").read_text())
     services = {name: service for name, service in compose["services"].items()
                 if service.get("command", [""])[0] == "python"}
@@ -305,11 +360,32 @@ def test_the_overlay_runs_what_compose_runs_with_the_policy_profile(renders: dic
     workloads = _causeway_workloads(renders[OVERLAY])
     for name in POLICY:
         env = _settings(renders[OVERLAY], workloads[name])
-        wanted = {key: re.sub(r"^\$\{\w+:-(.*)\}$", r"\1", str(value))
-                for key, value in services[name]["environment"].items() if key not in shared}
+        wanted = {key: _compose_default(value) for key, value in services[name]["environment"].items()
+                  if key not in shared}
         assert wanted and all(env.get(key) == value for key, value in wanted.items()), (name, wanted)
     cfg = {name: parse_config(CONFIGS[name], [], _settings(renders[OVERLAY], workloads[name])) for name in POLICY}
     assert cfg["policy-learner"].scored and cfg["intrinsic-reward"].reward == "preddiff"
+    scorer = workloads["intrinsic-reward"]["spec"]
+    assert scorer["replicas"] == 1 and scorer["strategy"] == {"type": "Recreate"}
+    assert parse_config(EnvWorkerConfig, [], _settings(renders[OVERLAY], workloads["env-worker"])).follow_policy
+
+
+@integration
+@pytest.mark.parametrize("overlay", sorted(EXTRACTOR_OVERLAYS))
+def test_an_extractor_overlay_runs_what_its_compose_override_runs(renders: dict[str, list[dict[str, Any]]],
+                                                                  overlay: str) -> None:
+    """The override's services (the extractor added, the env-workers changed as checked above), the extractor's
+    mode, and one method: the override's default, the documented bus-secrets command's and every workload's."""
+    override = _compose_override(overlay)
+    compose = yaml.safe_load((REPO / "compose.yaml").read_text())["services"]
+    assert set(override) - set(compose) == {EXTRACTOR} and set(override) == {"env-worker", EXTRACTOR}
+    wanted = {key: _compose_default(value) for key, value in override[EXTRACTOR]["environment"].items()}
+    cfg = {name: parse_config(CONFIGS[name], [], _settings(renders[overlay], w))
+           for name, w in _causeway_workloads(renders[overlay]).items()}
+    assert cfg[EXTRACTOR].mode == wanted["CAUSEWAY_MODE"]
+    command = shlex.split(EXTRACTOR_SECRETS[overlay])
+    methods = {c.method for c in cfg.values()} | {wanted["CAUSEWAY_METHOD"], command[command.index("--method") + 1]}
+    assert len(methods) == 1, methods
 
 
 @integration

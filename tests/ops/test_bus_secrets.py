@@ -27,7 +27,7 @@ def generate(out: Path) -> Path:
 def test_it_writes_private_files_and_extends_the_router_config(tmp_path: Path) -> None:
     secrets = generate(tmp_path / "bus")
     assert secrets.stat().st_mode & 0o777 == 0o700
-    assert len(list(secrets.iterdir())) == 11 and all(f.stat().st_mode & 0o777 == 0o600 for f in secrets.iterdir())
+    assert len(list(secrets.iterdir())) == 12 and all(f.stat().st_mode & 0o777 == 0o600 for f in secrets.iterdir())
     config = json.loads((secrets / "router.json5").read_text())
     assert config["mode"] == "router" and config["access_control"]["default_permission"] == "deny"
     assert config["transport"]["auth"]["usrpwd"]["dictionary_file"] == str(secrets / "router-users")
@@ -47,6 +47,8 @@ def test_a_router_started_from_it_admits_roles_only(tmp_path: Path) -> None:
     try:
         with pytest.raises(zenoh.ZError):
             ZenohTransport(endpoint).close()
+        with pytest.raises(zenoh.ZError):  # written for kustomize without --extractor, admitted only with it
+            ZenohTransport(endpoint, read_credentials(out / "factor-extractor.credentials")).close()
         received: list[bytes] = []
         with ZenohTransport(endpoint, read_credentials(out / "supervisor.credentials")) as supervisor, \
                 ZenohTransport(endpoint, read_credentials(out / "operator.credentials")) as operator:
@@ -162,9 +164,12 @@ def test_it_refuses_a_router_that_could_not_start_or_would_link_in_clear(tmp_pat
 def test_an_extractor_adds_its_role_and_changes_the_workers(tmp_path: Path, extractor: str, worker_publishes: str,
                                                            extractor_publishes: str) -> None:
     """``--extractor frames|latent``: the factor-extractor's credentials and rules, as a local run with
-    ``--worker-publish-frames true`` or ``--label-latent-actions true`` draws them; none without it."""
+    ``--worker-publish-frames true`` or ``--label-latent-actions true`` draws them. Without it the file is
+    still written (a kustomize base generates its Secret from it), for a user the router does not know."""
     plain = generate(tmp_path / "plain")
-    assert not (plain / "factor-extractor.credentials").exists()
+    unadmitted = read_credentials(plain / "factor-extractor.credentials")
+    assert unadmitted.user == "factor-extractor" and f"{unadmitted.user}:" not in (plain / "router-users").read_text()
+    assert "factor-extractor" not in (plain / "access-control.json").read_text()
     out = tmp_path / extractor
     assert cli_main(["bus-secrets", "--run", "compose", "--out", str(out), "--extractor", extractor,
                      "--method", "flam" if extractor == "latent" else "cdl"]) == 0
