@@ -5,8 +5,10 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
-from benchmarks.slots_table import VARIANTS, main
+from benchmarks.slots_table import VARIANTS, Budget, frame_source, main
+from envs.chemical_pixels import PART_COLOR
 
 
 def test_slots_table_toy_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -32,6 +34,18 @@ def test_slots_table_on_the_sprite_game(tmp_path: Path, capsys: pytest.CaptureFi
         assert -1.0 <= result[variant]["slots"]["fg_ari"] <= 1.0
     with pytest.raises(ValueError, match="num-objects"):
         main(["--env", "sprites", "--num-objects", "1", "--out", str(tmp_path / "bad.json")])
+
+
+def test_the_two_tone_scene_draws_the_same_objects_with_grey_lower_halves() -> None:
+    budget = Budget(num_objects=3, frame_size=32)
+    plain, plain_labels = frame_source("chemical-pixels", budget)(4, 6)
+    toned, labels = frame_source("chemical-pixels-two-tone", budget)(4, 6)
+    assert torch.equal(labels, plain_labels) and not toned[labels == 0].any()
+    part = torch.as_tensor(PART_COLOR)
+    grey = (toned == part).all(dim=-1)
+    assert 0.3 < float(grey[labels > 0].float().mean()) < 0.7 and not grey[labels == 0].any()
+    assert not (plain == part).all(dim=-1).any()
+    assert torch.equal(toned[~grey], plain[~grey])
 
 
 def test_more_slots_than_segments_leaves_the_spare_slots_free(tmp_path: Path) -> None:
