@@ -75,6 +75,13 @@ def _write_private(path: Path, text: str) -> None:
     os.chmod(path, 0o600)  # an existing file keeps its mode on O_CREAT
 
 
+def write_role_credentials(run_dir: str | Path, role: str, password: str) -> Path:
+    """``role``'s one-line credentials file under ``<run_dir>/secrets``, private to its owner; its path."""
+    path = role_file(run_dir, role)
+    _write_private(path, f"{role}:{password}\n")
+    return path
+
+
 def write_run_secrets(run_dir: str | Path, passwords: dict[str, str], access_control: dict[str, Any]) -> RouterAuth:
     """Write every role's credentials file, the router's user dictionary and its access control under
     ``<run_dir>/secrets``; returns what the router is started with."""
@@ -82,7 +89,7 @@ def write_run_secrets(run_dir: str | Path, passwords: dict[str, str], access_con
     directory.mkdir(parents=True, exist_ok=True)
     os.chmod(directory, 0o700)
     for role, password in passwords.items():
-        _write_private(role_file(run_dir, role), f"{role}:{password}\n")
+        write_role_credentials(run_dir, role, password)
     _write_private(directory / USERS_FILE, "".join(f"{role}:{pw}\n" for role, pw in passwords.items()))
     _write_private(directory / ACL_FILE, json.dumps(access_control, indent=1) + "\n")
     return RouterAuth(directory / USERS_FILE, access_control)

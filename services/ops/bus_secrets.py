@@ -53,7 +53,7 @@ from pathlib import Path, PurePosixPath
 from typing import Sequence
 
 from proto import topics
-from services.bus.credentials import SECRETS_DIR, read_credentials, role_file, write_run_secrets
+from services.bus.credentials import SECRETS_DIR, read_credentials, write_role_credentials, write_run_secrets
 from services.bus.roles import FRAMES_ROLE, ROLES, access_control, new_passwords, run_roles
 from services.bus.router import ROUTER_COMMON_NAME, with_meshed_routers
 from services.ops.bus_tls import CA_CERTIFICATE, CA_KEY, write_tls
@@ -165,14 +165,6 @@ def _tls_settings(args: argparse.Namespace, directory: Path) -> dict[str, object
     return settings
 
 
-def _write_unadmitted(out: str, role: str) -> None:
-    """``role``'s credentials file for a user in no users file: a Secret that kustomize can generate, which
-    opens no session."""
-    path = role_file(out, role)
-    path.touch(0o600)
-    path.write_text(f"{role}:{new_passwords((role,))[role]}\n")
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -189,8 +181,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   cert_common_names=[ROUTER_COMMON_NAME] if args.join else [])
         passwords = new_passwords(tuple(roles) + tuple(args.mesh_user))
         auth = write_run_secrets(args.out, passwords, acl)
-        if FRAMES_ROLE not in roles:
-            _write_unadmitted(args.out, FRAMES_ROLE)
+        if FRAMES_ROLE not in roles:  # a file for kustomize's generator, for a user no router admits
+            write_role_credentials(args.out, FRAMES_ROLE, new_passwords((FRAMES_ROLE,))[FRAMES_ROLE])
         target = Path(args.out) / SECRETS_DIR / ROUTER_FILE
         settings = _tls_settings(args, target.parent)
         if args.listen:
