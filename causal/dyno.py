@@ -61,7 +61,8 @@ class DynOConfig:
                                    "not in the chapter; with token_mask objects it is what lifts the annealed "
                                    "prior above no prior on objects of two parts, docs/results.md)")
     two_tone: bool = doc(False, "render each shape's lower half in one grey shared by all objects (objects of "
-                                "two parts: envs.chemical_pixels.ChemicalPixelsEnv.two_tone)")
+                                "two parts: envs.chemical_pixels.ChemicalPixelsEnv.two_tone); --env "
+                                "chemical-pixels-two-tone sets it")
     ae_updates: int = doc(300, "phase 1: frame-autoencoder updates (then frozen)")
     slot_updates: int = doc(1500, "phase 2: slot updates, U of the mask-drop schedule")
     ae_lr: float = doc(1e-3, "Adam learning rate of the frame autoencoder")

@@ -14,8 +14,8 @@ everywhere in Causeway; edge scores are "higher = more of an edge" and compared 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
-from typing import Any, Callable, Protocol, runtime_checkable
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -205,6 +205,9 @@ class Method:
     """Per-slot latent actions learned from video (FLAM): the summary's ``latent_actions`` block, from the final model."""
     envs: tuple[str, ...] = ()
     """Environments the method runs on (empty: any); ``causeway run`` refuses others before starting."""
+    env_settings: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    """Env name -> settings of :attr:`config` that env implies (``causeway run`` sets them, whatever the
+    flags say): Dyn-O draws its own frames, so on ``chemical-pixels-two-tone`` it draws two-part objects."""
     check_layout: Callable[[FactorLayout, Any], None] | None = None
     """``(layout, config)``: raises ``ValueError`` for settings the env's factors cannot take (``causeway
     run`` calls it before starting, so a learner never fails on them mid-run)."""

@@ -176,6 +176,10 @@ ENVS: dict[str, EnvEntry] = {e.name: e for e in (
     EnvEntry("chemical-pixels", "causeway/ChemicalPixels-v0", "envs.chemical_pixels:ChemicalPixelsEnv",
              "Chemical drawn as RGB frames with exact per-object masks in info (ch. 7, Dyn-O's rendered env)",
              options=_CHEMICAL, truth="global+local", check=_check_chemical),
+    EnvEntry("chemical-pixels-two-tone", "causeway/ChemicalPixelsTwoTone-v0", "envs.chemical_pixels:ChemicalPixelsEnv",
+             "chemical-pixels with every shape's lower half in one grey shared by all objects: objects of two parts "
+             "(ch. 7, Table 7.1)", options=_CHEMICAL, truth="global+local", check=_check_chemical,
+             preset={"two_tone": True}),
     EnvEntry("manipulation", "causeway/Manipulation-v0", "envs.manipulation:ManipulationEnv",
              "robosuite manipulation scene (ch. 3.3.1): UR5e, movable/fixed/random-walk cubes, markers",
              options=("episode_length", "velocities"), truth="global+local",

@@ -1,5 +1,6 @@
 """Dyn-O (dissertation ch. 7) as a Causeway method: object slots from frames (eq. 7.1, the annealed
-mask prior) and a slot world model (eq. 7.2), trained by the dynamics-learner on ``chemical-pixels``.
+mask prior) and a slot world model (eq. 7.2), trained by the dynamics-learner on ``chemical-pixels`` (or on
+``chemical-pixels-two-tone``, objects of two parts: the env sets ``two_tone``).
 
 The parts live in :mod:`causal.dyno` (the model, the phased trainer, the FG-ARI scorer),
 :mod:`causal.slots` and :mod:`causal.slot_world_model`; this module names them for the registry. Dyn-O
@@ -18,5 +19,6 @@ METHOD = Method(
     trainer=lambda layout, cfg, seed: DynOTrainer(layout, cfg, seed),
     model_from_config=model_from_config,
     slots=SlotScores(),
-    envs=("chemical-pixels",),
+    envs=("chemical-pixels", "chemical-pixels-two-tone"),
+    env_settings={"chemical-pixels-two-tone": {"two_tone": True}},
 )

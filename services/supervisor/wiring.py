@@ -58,6 +58,9 @@ def resolve(cfg: RunConfig) -> RunConfig:
     check_options(cfg.env, cfg.env_options)
     if method.envs and cfg.env not in method.envs:
         raise ValueError(f"method {cfg.method!r} runs on {', '.join(method.envs)} only, not {cfg.env!r}")
+    if cfg.env in method.env_settings:
+        implied = dataclasses.replace(method_config(cfg.models, cfg.method), **method.env_settings[cfg.env])
+        cfg = dataclasses.replace(cfg, models=dataclasses.replace(cfg.models, **{cfg.method: implied}))
     if method.check_layout is not None:
         method.check_layout(FactorLayout.from_spec(run_env_spec(cfg)), method_config(cfg.models, cfg.method))
     _check_policy(cfg, method.intrinsic)

@@ -106,6 +106,14 @@ def test_registry_builds_it_and_render_returns_the_frame() -> None:
     np.testing.assert_array_equal(env.render(), info["frame"])
 
 
+def test_the_two_tone_entry_draws_what_two_tone_true_draws() -> None:
+    entry = make_env("chemical-pixels-two-tone", graph="chain", num_objects=4)
+    flagged = _env(num_objects=4, two_tone=True)
+    frames = [env.reset(seed=3)[1]["frame"] for env in (entry, flagged)]
+    np.testing.assert_array_equal(frames[0], frames[1])
+    assert entry.config() == flagged.config() and (frames[0] == PART_COLOR).all(axis=-1).any()
+
+
 def test_bad_options_are_refused() -> None:
     with pytest.raises(ValueError, match="ood_noise_scale"):
         _env(ood_noise_scale=0.1)

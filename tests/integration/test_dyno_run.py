@@ -45,4 +45,5 @@ def test_dyno_refuses_an_environment_it_cannot_render(tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "services.cli", "run", "--env", "chemical", "--method", "dyno",
            "--run-dir", str(tmp_path / "run"), "--progress", "false"]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 2 and "runs on chemical-pixels only" in done.stdout + done.stderr
+    out = done.stdout + done.stderr
+    assert done.returncode == 2 and "runs on chemical-pixels, chemical-pixels-two-tone only" in out

@@ -10,6 +10,8 @@ import time
 import pytest
 import torch
 
+from causal.methods import get_method, method_config
+from envs import make_env
 from proto import topics
 from proto.codec import decode
 from proto.messages import GraphReport, Weights
@@ -45,6 +47,17 @@ def test_wiring_starts_an_extractor_with_frames_only(tmp_path) -> None:
     with pytest.raises(ValueError, match="--extractor-num-slots must be 0 or 4"):
         resolve(_cfg(tmp_path, extractor_num_slots=6))
     assert resolve(_cfg(tmp_path, extractor_num_slots=6, extractor_identity="none")).extractor.num_slots == 6
+    two_tone = service_configs(resolve(_cfg(tmp_path, env="chemical-pixels-two-tone")), "memory")["env-worker"]
+    assert two_tone.env == "chemical-pixels-two-tone" and make_env(two_tone.env).two_tone
+
+
+def test_dyno_on_the_two_tone_env_draws_two_part_objects_whatever_its_flag_says(tmp_path) -> None:
+    """Dyn-O renders its own frames from the states, so the env's name is what sets ``two_tone``."""
+    for env, flag, expected in (("chemical-pixels-two-tone", False, True), ("chemical-pixels", False, False),
+                                ("chemical-pixels", True, True)):
+        cfg = resolve(_cfg(tmp_path, method="dyno", env=env, worker_publish_frames=False, dyno_two_tone=flag))
+        assert method_config(cfg.models, "dyno").two_tone is expected, env
+    assert get_method("cdl").env_settings == {}
 
 
 def test_cdl_learns_over_slots_from_frames_in_process(tmp_path) -> None:
