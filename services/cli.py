@@ -9,8 +9,9 @@ stack (``causeway <command> --help`` for each; ``services/ops/``):
     causeway stop       (--run RUN [--connect E] | --run-dir runs/X)
     causeway checkpoint (--run RUN [--connect E] | --run-dir runs/X)
 
-and one acts on a finished run: ``causeway final-graph --run-dir runs/X`` (the final model's graph on
-all held-out data into the run's summary; ``services.supervisor.final_graph``).
+and two act on finished runs: ``causeway final-graph --run-dir runs/X`` (the final model's graph on
+all held-out data into the run's summary; ``services.supervisor.final_graph``), and ``causeway compare
+RUN...`` puts finished runs side by side by the results contract's scores (``services.supervisor.compare``).
 ``causeway bus-secrets --run RUN --out DIR`` writes a stack's bus credentials and router
 configuration where no supervisor draws them (compose, Kubernetes; ``services.ops.bus_secrets``).
 """
@@ -79,6 +80,7 @@ COMMANDS: dict[str, Command] = {
     "checkpoint": _operator("checkpoint", "control", "checkpoint_main"),
     "final-graph": lambda argv: importlib.import_module("services.supervisor.final_graph").main(argv),
     "bus-secrets": lambda argv: importlib.import_module("services.ops.bus_secrets").main(argv),
+    "compare": lambda argv: importlib.import_module("services.supervisor.compare").main(argv),
 }
 
 
