@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -173,11 +174,13 @@ class GraphEvaluatorCore:
         return InducedGraphs(kind=self.kind, worker_id=batch.worker_id, seq=batch.seq,
                              weights_version=self.weights.version, graphs=graphs.astype(np.uint8))
 
-    def evaluate_local(self, every: bool = False) -> LocalGraphReport:
+    def evaluate_local(self, every: bool = False,
+                       progress: Callable[[int, int], None] | None = None) -> LocalGraphReport:
         """The method's local graphs of held-out transitions scored against their true local graphs
-        (``every``: all of the kept ones, for the run's final report)."""
+        (``every``: all of the kept ones, for the run's final report; ``progress(done, total)`` after
+        each chunk of them)."""
         assert self.local is not None and self.model is not None and self.weights is not None
-        return self.local.evaluate(self.model, self.weights, every)
+        return self.local.evaluate(self.model, self.weights, every, progress)
 
     def edge_scores(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor
                     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray | None]:

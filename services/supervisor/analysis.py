@@ -95,7 +95,7 @@ def _final_reports(cfg: RunConfig, run_dir: Path, stream: TextIO) -> tuple[Graph
     transition with a true local graph (:mod:`services.supervisor.final_graph`)."""
     stream.write("final graph: edge scores of the final model on every held-out transition ...\n")
     try:
-        final, local = final_reports(run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg))
+        final, local = final_reports(run_dir, service_configs(cfg, "")["graph-evaluator"], run_env_spec(cfg), stream)
     except Exception:  # noqa: BLE001 - the run itself is done
         log.exception("final graph evaluation failed")
         return None, None

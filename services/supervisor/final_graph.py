@@ -21,7 +21,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TextIO
 
 from causal.method import export_tensors
 from causal.methods import get_method
@@ -53,16 +53,36 @@ def final_core(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec
     return core
 
 
-def final_reports(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig,
-                  spec: EnvSpec) -> tuple[GraphReport | None, LocalGraphReport | None]:
+def final_reports(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec,
+                  stream: TextIO | None = None) -> tuple[GraphReport | None, LocalGraphReport | None]:
     """The final model's global graph on the whole held-out set and its local graphs on every kept
-    held-out transition with a true local graph; each None where the method or the data has none."""
+    held-out transition with a true local graph; each None where the method or the data has none.
+    With a ``stream``, the local graphs' progress goes to it (a line at most every 10 s)."""
     core = final_core(run_dir, evaluator_cfg, spec)
     if core is None:
         return None, None
     graph = core.evaluate_final() if core.method.global_graph is not None else None
-    local = core.evaluate_local(every=True) if core.local is not None and core.local.ring.size else None
+    local = None
+    if core.local is not None and core.local.ring.size:
+        local = core.evaluate_local(every=True, progress=None if stream is None else _progress_lines(stream))
     return graph, local
+
+
+def _progress_lines(stream: TextIO, every_s: float = 10.0) -> Callable[[int, int], None]:
+    """``progress(done, total)`` writing ``final local graphs: done / total transitions (s)`` to
+    ``stream`` when ``every_s`` seconds have passed since the last line (never for the last chunk:
+    the caller reports the result)."""
+    started = last = time.monotonic()
+
+    def progress(done: int, total: int) -> None:
+        nonlocal last
+        now = time.monotonic()
+        if done < total and now - last >= every_s:
+            last = now
+            stream.write(f"final local graphs: {done:,} / {total:,} transitions ({now - started:.0f}s)\n")
+            stream.flush()
+
+    return progress
 
 
 def final_graph(run_dir: Path, evaluator_cfg: GraphEvaluatorConfig, spec: EnvSpec) -> GraphReport | None:
@@ -116,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"causeway final-graph: {exc}", file=sys.stderr)
         return 2
     evaluator_cfg = dataclasses.replace(service_configs(cfg, "")["graph-evaluator"], device=args.device)
-    final, local = final_reports(args.run_dir, evaluator_cfg, run_env_spec(cfg))
+    final, local = final_reports(args.run_dir, evaluator_cfg, run_env_spec(cfg), sys.stdout)
     if final is None and local is None:
         print(f"causeway final-graph: {args.run_dir} has no learner and evaluator checkpoints", file=sys.stderr)
         return 1

@@ -3,6 +3,8 @@ held-out transitions against the simulator's true local graphs, and the run wire
 on the envs that score local graphs."""
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
 import torch
@@ -15,8 +17,10 @@ from services.dynamics_learner.core import DynamicsLearnerCore
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.core import EnvWorkerCore
 from services.graph_evaluator.config import GraphEvaluatorConfig
+from services.graph_evaluator import local as local_module
 from services.graph_evaluator.core import GraphEvaluatorCore
 from services.runtime.config import build_config
+from services.supervisor import final_graph
 from services.supervisor.config import RunConfig
 from services.supervisor.wiring import resolve, scores_local_graphs, service_configs
 
@@ -58,6 +62,25 @@ def test_pointwise_cmi_local_graphs_are_scored_against_the_truth(tmp_path) -> No
                           evaluator.local.ring.graphs[: evaluator.local.ring.size])
     final = evaluator.evaluate_local(every=True)
     assert final.num_transitions == evaluator.local.ring.size
+
+
+def test_the_final_local_graphs_in_chunks_score_as_one_call_and_report_progress(monkeypatch) -> None:
+    evaluator, _ = _trained("chemical", 300, graph="chain", num_objects=3)
+    whole = evaluator.evaluate_local(every=True)
+    monkeypatch.setattr(local_module, "CHUNK", 64)
+    seen: list[tuple[int, int]] = []
+    chunked = evaluator.evaluate_local(every=True, progress=lambda done, total: seen.append((done, total)))
+    n = evaluator.local.ring.size
+    assert seen == [(min(done, n), n) for done in range(64, n + 64, 64)] and n % 64 and n > 64
+    assert chunked.num_transitions == whole.num_transitions == n
+    np.testing.assert_allclose(chunked.scores, whole.scores, rtol=1e-5, atol=1e-7)
+    for key, value in whole.metrics.items():
+        assert chunked.metrics[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
+    stream = io.StringIO()
+    lines = final_graph._progress_lines(stream, every_s=0.0)
+    for done in (64, 128, 300):
+        lines(done, 300)
+    assert stream.getvalue().splitlines() == [f"final local graphs: {n} / 300 transitions (0s)" for n in (64, 128)]
 
 
 def test_household_env_local_graphs_flow_into_the_evaluator() -> None:
