@@ -5,7 +5,7 @@ import sys
 import time
 from typing import TextIO
 
-from proto.messages import GraphReport, ServiceStats
+from proto.messages import GraphReport, LocalGraphReport, ServiceStats
 
 
 CUMULATIVE = ("env_steps", "episodes", "updates")
@@ -17,13 +17,18 @@ of the model's updates, so a fall is work lost since the checkpoint, not a count
 class Progress:
     """Keeps the newest stats per service instance and renders one status line."""
 
-    def __init__(self, stream: TextIO = sys.stderr, interactive: bool | None = None, every_s: float = 10.0) -> None:
+    def __init__(self, stream: TextIO = sys.stderr, interactive: bool | None = None, every_s: float = 10.0,
+                 global_graph: bool = True, local_graphs: bool = False) -> None:
+        """``global_graph`` / ``local_graphs``: which reports the run's method and env give (the line
+        says it waits for one only where one will come)."""
+        self.global_graph, self.local_graphs = global_graph, local_graphs
         self.stream = stream
         self.interactive = stream.isatty() if interactive is None else interactive
         self.every_s = every_s
         self.stats: dict[tuple[str, str], ServiceStats] = {}
         self.carried: dict[tuple[str, str, str], float] = {}
         self.report: GraphReport | None = None
+        self.local: LocalGraphReport | None = None
         self.started = time.monotonic()
         self._last_line = 0.0
         self._rate: dict[str, tuple[float, float]] = {}
@@ -44,6 +49,9 @@ class Progress:
 
     def on_report(self, report: GraphReport) -> None:
         self.report = report
+
+    def on_local_report(self, report: LocalGraphReport) -> None:
+        self.local = report
 
     def value(self, service: str, key: str) -> float:
         return sum(s.values.get(key, 0.0) + self.carried.get((svc, inst, key), 0.0)
@@ -73,6 +81,15 @@ class Progress:
         self._rate[name] = (now, total)
         return (total - last_v) / (now - last_t) if now > last_t else 0.0
 
+    def live_scores(self, most: int = 4) -> dict[str, float]:
+        """The learner's newest live scores (``live_*`` in its beat: FLAM's PSNR and DCI), per-slot
+        ones left out, at most ``most``."""
+        learner = self.stats.get(("dynamics-learner", "0"))
+        values = learner.values if learner is not None else {}
+        live = {k.removeprefix("live_"): v for k, v in values.items()
+                if k.startswith("live_") and not k.startswith("live_slot")}
+        return dict(list(live.items())[:most])
+
     def line(self, restarts: int) -> str:
         elapsed = time.monotonic() - self.started
         steps, updates = self.env_steps(), self.updates()
@@ -85,8 +102,16 @@ class Progress:
                          f"(best-threshold F1 {m['best_threshold_f1']:.3f})")
         elif self.report is not None:
             parts.append(f"graph v{self.report.weights_version} ({int(self.report.adjacency.sum())} edges)")
-        else:
+        elif self.global_graph:
             parts.append("graph: waiting for the first report")
+        if self.local is not None:
+            m = self.local.metrics
+            parts.append(f"local graphs v{self.local.weights_version} ROC AUC {m['roc_auc']:.3f} "
+                         f"best F1 {m['best_f1']:.3f}")
+        elif self.local_graphs and not self.global_graph:
+            parts.append("local graphs: waiting for the first report")
+        if live := self.live_scores():
+            parts.append("live " + " ".join(f"{k} {v:.3g}" for k, v in live.items()))
         if restarts:
             parts.append(f"restarts {restarts}")
         return " | ".join(parts)

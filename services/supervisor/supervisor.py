@@ -42,7 +42,8 @@ from services.supervisor.report_skills import skill_facts
 from services.supervisor.report_slots import label_facts, slot_facts
 from services.supervisor.stop_rules import StopRules
 from services.supervisor.wiring import (MODULES, check_ports_free, credentials_path, learning_services,
-                                       prepare_bus_auth, resolve, service_configs, worker_config)
+                                       prepare_bus_auth, resolve, scores_local_graphs, service_configs,
+                                       worker_config)
 
 log = logging.getLogger("supervisor")
 KNOWN_VERSION_ENV = "CAUSEWAY_KNOWN_VERSION"
@@ -58,7 +59,9 @@ class Supervisor:
         self.connect = f"tcp/127.0.0.1:{self.cfg.router_port}"
         self.processes: dict[str, ManagedProcess] = {}
         self.progress = Progress(interactive=None if self.cfg.progress else False,
-                                 every_s=10.0 if self.cfg.progress else 1e9)
+                                 every_s=10.0 if self.cfg.progress else 1e9,
+                                 global_graph=get_method(self.cfg.method).global_graph is not None,
+                                 local_graphs=scores_local_graphs(self.cfg))
         self.history: list[dict[str, float]] = []
         self.last_report: GraphReport | None = None
         self.revision: str | None = None  # the commit that runs, read once at the start
@@ -291,6 +294,7 @@ class Supervisor:
             return
         with self._lock:
             self.last_local = report
+            self.progress.on_local_report(report)
             self.local_history.append({"time": time.monotonic() - self.progress.started, "env_steps": report.env_steps,
                                        "updates": report.updates, **report.metrics})
 

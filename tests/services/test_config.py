@@ -100,6 +100,29 @@ def test_progress_totals_survive_a_restarted_counter() -> None:
     assert p.updates() == 1100
 
 
+def test_progress_line_waits_only_for_the_reports_the_run_gives() -> None:
+    import io
+
+    import numpy as np
+
+    from proto.messages import LocalGraphReport, ServiceStats
+    from services.supervisor.progress import Progress
+
+    assert "graph: waiting for the first report" in Progress(stream=io.StringIO(), interactive=False).line(0)
+    elden = Progress(stream=io.StringIO(), interactive=False, global_graph=False, local_graphs=True)
+    assert elden.line(0).endswith("| local graphs: waiting for the first report") and "graph:" not in elden.line(0)
+    elden.on_local_report(LocalGraphReport(
+        kind="elden", estimator="jacobian", weights_version=7, env_steps=10, updates=5, factor_names=("a", "b"),
+        threshold=3e-4, scores=np.zeros((0, 2, 3), np.float32), truth=np.zeros((0, 2, 3), np.uint8),
+        metrics={"roc_auc": 0.8512, "pr_auc": 0.2, "best_f1": 0.7149}, num_transitions=1000, timestamp=0.0))
+    assert elden.line(0).endswith("| local graphs v7 ROC AUC 0.851 best F1 0.715")
+    flam = Progress(stream=io.StringIO(), interactive=False, global_graph=False)
+    assert flam.line(0).endswith("nll 0.000")  # no evaluator: nothing to wait for
+    flam.on_stats(ServiceStats("dynamics-learner", "0", {"updates": 3.0, "live_psnr": 41.234, "live_dci_d": 0.5,
+                                                        "live_slot0_kl": 2.0}))
+    assert flam.line(0).endswith("| live psnr 41.2 dci_d 0.5")
+
+
 def test_object_level_graph_collapses_factors() -> None:
     import numpy as np
 
