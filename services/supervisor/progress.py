@@ -93,9 +93,10 @@ class Progress:
     def line(self, restarts: int) -> str:
         elapsed = time.monotonic() - self.started
         steps, updates = self.env_steps(), self.updates()
-        nll = self.value("dynamics-learner", "nll_full")
-        parts = [f"[{elapsed:6.0f}s]", f"env {steps:,} steps ({self._per_second('env', steps):,.0f}/s)",
-                 f"updates {updates:,} ({self._per_second('upd', updates):.1f}/s) nll {nll:.3f}"]
+        training = f"updates {updates:,} ({self._per_second('upd', updates):.1f}/s)"
+        if (nll := self.mean("dynamics-learner", "nll_full")) is not None:
+            training += f" nll {nll:.3f}"  # NLL per factor (CDL, CBM, ELDEN); FLAM and Dyn-O have none
+        parts = [f"[{elapsed:6.0f}s]", f"env {steps:,} steps ({self._per_second('env', steps):,.0f}/s)", training]
         if self.report is not None and self.report.metrics:
             m = self.report.metrics
             parts.append(f"graph v{self.report.weights_version} F1 {m['f1']:.3f} acc {m['accuracy']:.3f} "

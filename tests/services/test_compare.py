@@ -61,7 +61,8 @@ def test_runs_of_one_configuration_fold_into_mean_and_sample_sd(tmp_path) -> Non
     assert columns(runs) == ["graph.f1", "graph.roc_auc", "local_graph.roc_auc", "local_graph.pr_auc",
                              "local_graph.best_f1", "task.success_rate", "task.stages_mean"]
     table = group_table(groups).splitlines()
-    assert table[2].startswith("| cdl | chemical (graph=chain num_objects=3) | 3 | 0, 1, 2 | 0.900 ± 0.100 | 1.000 ± 0.000")
+    assert table[2].startswith("| cdl | chemical (graph=chain num_objects=3) | 3 | 0, 1, 2 | 0.900 ± 0.100 | "
+                               "1.000 ± 0.000")
     assert table[4].endswith("|  |  | 0.850 | 0.200 | 0.300 | 0.100 | 0.600 |")
 
 

@@ -117,7 +117,7 @@ def test_progress_line_waits_only_for_the_reports_the_run_gives() -> None:
         metrics={"roc_auc": 0.8512, "pr_auc": 0.2, "best_f1": 0.7149}, num_transitions=1000, timestamp=0.0))
     assert elden.line(0).endswith("| local graphs v7 ROC AUC 0.851 best F1 0.715")
     flam = Progress(stream=io.StringIO(), interactive=False, global_graph=False)
-    assert flam.line(0).endswith("nll 0.000")  # no evaluator: nothing to wait for
+    assert flam.line(0).endswith("updates 0 (0.0/s)")  # no evaluator: nothing to wait for; no NLL to show
     flam.on_stats(ServiceStats("dynamics-learner", "0", {"updates": 3.0, "live_psnr": 41.234, "live_dci_d": 0.5,
                                                         "live_slot0_kl": 2.0}))
     assert flam.line(0).endswith("| live psnr 41.2 dci_d 0.5")
