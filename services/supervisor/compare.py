@@ -218,9 +218,9 @@ def plot(labels: Sequence[str], values: Sequence[dict[str, float]], errors: Sequ
 def _json_rows(runs: Sequence[RunScores], groups: Sequence[GroupScores] | None) -> dict[str, Any]:
     out: dict[str, Any] = {"columns": columns(runs), "runs": [
         {"path": str(r.path), "run_id": r.run_id, "method": r.method, "env": r.env, "seed": r.seed,
-         "env_options": r.setting, "scores": r.scores} for r in runs]}
+         "setting": r.setting, "scores": r.scores} for r in runs]}
     if groups is not None:
-        out["groups"] = [{"method": g.method, "env": g.env, "env_options": g.setting,
+        out["groups"] = [{"method": g.method, "env": g.env, "setting": g.setting,
                           "runs": [r.run_id for r in g.runs], "mean": g.mean, "sd": g.sd, "count": g.count}
                          for g in groups]
     return out
