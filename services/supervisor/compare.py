@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -133,9 +134,8 @@ def group(runs: Sequence[RunScores]) -> list[GroupScores]:
             values = [r.scores[key] for r in members if isinstance(r.scores.get(key), float)]
             if not values:
                 continue
-            m = sum(values) / len(values)
-            mean[key], count[key] = m, len(values)
-            sd[key] = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+            mean[key], count[key] = statistics.fmean(values), len(values)
+            sd[key] = statistics.stdev(values) if len(values) > 1 else 0.0
         out.append(GroupScores(method, env, setting, tuple(members), mean, sd, count))
     return out
 
